@@ -1,0 +1,47 @@
+"""``palette-recolor``: a weight stack and an edited palette -> recoloured images."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..io import atomic_outputs, check_writable, save_image
+from ..recolor import read_palette_json, weights_to_rgb
+from ..stack import read_stack
+from . import ArgumentParser, run_cli
+
+PROG = "palette-recolor"
+
+
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(prog=PROG, description="Recolour every image of a weight stack "
+                            "with an edited palette.")
+    parser.add_argument("stack", help="weight stack (.npz) from palette-decompose")
+    parser.add_argument("--palette", required=True,
+                        help='palette JSON: {"palette": ["#rrggbb", ...]}, as many colours as '
+                             "the stack's palette")
+    parser.add_argument("-o", "--output", required=True, metavar="DIR",
+                        help="folder for the recoloured images (same names as the inputs)")
+    parser.add_argument("--force", action="store_true", help="overwrite existing images")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(PROG, lambda: _run(build_parser().parse_args(argv)))
+
+
+def _run(args) -> int:
+    stack = read_stack(args.stack)
+    palette = read_palette_json(args.palette, k=len(stack.palette))
+    folder = Path(args.output)
+    targets = [folder / name for name in stack.names]
+    check_writable(targets, args.force)
+    with atomic_outputs() as stage:
+        for target, weights in zip(targets, stack.weights):
+            save_image(stage(target), weights_to_rgb(weights, palette, stack.basis, stack.order))
+    print(f"wrote {len(targets)} recoloured images to {folder}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

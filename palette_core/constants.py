@@ -1,0 +1,28 @@
+"""Numerical tolerances, in one place (colours are sRGB in [0, 1]).
+
+Each constant names the geometric test it guards; kernels and wrappers import
+them from here rather than scattering literals.
+"""
+
+#: A colour closer than this to a palette vertex takes that vertex's weight alone.
+VERTEX_TOL = 1e-10
+
+#: A colour closer than this to an edge takes linear weights of its two ends.
+EDGE_TOL = 1e-10
+
+#: A colour closer than this to a face plane (and inside the face) takes
+#: barycentric weights of the face. Mean value coordinates lose accuracy as a
+#: point approaches a face (Ju et al. 2005, Sec. 3.3); below this distance the
+#: barycentric weights reproduce the colour better than 1e-7.
+FACE_TOL = 1e-10
+
+#: A colour whose signed distance to every face plane is below this is inside.
+INSIDE_TOL = 1e-12
+
+#: Relative size of a singular value under which a colour set is taken to have
+#: lost a dimension (collinear greys, coplanar colours).
+RANK_TOL = 1e-9
+
+#: Invariants every weight vector satisfies (the tests check them).
+WEIGHT_MIN = -1e-7
+WEIGHT_SUM_TOL = 1e-6
