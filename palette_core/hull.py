@@ -37,7 +37,7 @@ _MIX = np.uint64(0x9E3779B97F4A7C15)
 #: Cost per unit of slack in the collapse LP; far above any added volume
 #: (the LP box is a few units wide), so the slack is zero whenever it can be.
 _SLACK_PENALTY = 1e6
-#: Slack above this means the edge's LP is infeasible.
+#: Slack above this means the edge's LP is infeasible (the collapse lets colours out).
 _SLACK_TOL = 1e-9
 #: One step collapses at most (vertices above target) / this many edges. Measured
 #: on the scikit-image photos at K = 6: 12 keeps the RMSE of one-at-a-time
@@ -94,23 +94,30 @@ def simplification_levels(points: np.ndarray, target: int | None = None) -> Iter
             blocks = [sorted(set(touching[a] + touching[b])) for a, b in edges[todo].tolist()]
             solved = _solve_collapses(blocks, normals, offsets, measures, box, d)
             cache.update({keys[i]: result for i, result in zip(todo, solved)})
-        costs = np.array([cache[key][0] for key in keys])
-        chosen = _independent_cheapest(edges, costs, facets, touching,
-                                       max(1, (len(alive) - target) // 1000000))
-        if not chosen:
-            return  # no edge can collapse (numerically hopeless hull); stop here
+        slack, volume = np.array([cache[key][:2] for key in keys]).T
+        chosen = _independent_cheapest(edges, slack, volume, facets, touching,
+                                       max(1, (len(alive) - target) // _BATCH_DIVISOR))
         new_ids = np.arange(n_ids, n_ids + len(chosen))
-        positions[new_ids] = [cache[keys[e]][1] for e in chosen]
+        positions[new_ids] = [cache[keys[e]][2] for e in chosen]
         alive = np.append(alive[~np.isin(alive, edges[chosen])], new_ids)
         n_ids += len(chosen)
 
 
-def _independent_cheapest(edges, costs, facets, touching, limit) -> list[int]:
-    """Up to ``limit`` edges, cheapest first, no two of which share a facet's vertex."""
+def _independent_cheapest(edges, slack, volume, facets, touching, limit) -> list[int]:
+    """Edges to collapse in one step.
+
+    Up to ``limit`` feasible edges (zero slack), least added volume first, no two
+    of which share a facet's vertex. When no edge is feasible (box-like hulls:
+    a cube's edge cannot collapse with all colours kept inside), the one edge
+    that needs the least slack, i.e. lets colours out by the least distance.
+    """
+    feasible = slack <= _SLACK_TOL
+    if not feasible.any():
+        return [int(np.lexsort((volume, slack))[0])]
     chosen: list[int] = []
     claimed: set[int] = set()
-    for e in np.argsort(costs, kind="stable"):
-        if not np.isfinite(costs[e]) or len(chosen) == limit:
+    for e in np.argsort(np.where(feasible, volume, np.inf), kind="stable"):
+        if not feasible[e] or len(chosen) == limit:
             break
         a, b = edges[e]
         ring = set(facets[touching[a] + touching[b]].ravel().tolist())
@@ -166,8 +173,8 @@ def _solve_collapses(blocks, normals, offsets, measures, box, d):
     Each block gets a slack s >= 0 that moves all its planes outwards
     (n_f . v + o_f + s >= 0) at a cost of ``_SLACK_PENALTY`` per unit, so every
     block is feasible and one infeasible edge cannot fail the others; a block
-    whose optimum needs s > 0 has no point outside all its planes: that edge
-    cannot collapse. Returns [(added volume or inf, v)] per block.
+    whose optimum needs s > 0 has no point outside all its planes: collapsing
+    that edge lets colours out by up to s. Returns [(s, added volume, v)].
     """
     n = len(blocks)
     rows = np.concatenate(blocks).astype(np.int64)
@@ -190,8 +197,7 @@ def _solve_collapses(blocks, normals, offsets, measures, box, d):
     solution = res.x.reshape(n, d + 1)
     v, slack = solution[:, :d], solution[:, d]
     volume = np.einsum("ij,ij->i", objective[:, :d], v) + constant
-    volume[slack > _SLACK_TOL] = np.inf
-    return list(zip(volume.tolist(), v))
+    return list(zip(slack.tolist(), volume.tolist(), v))
 
 
 def extract_palette(

@@ -241,7 +241,9 @@ def atomic_outputs():
     def stage(final: str | os.PathLike) -> Path:
         final = Path(final)
         final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=".tmp" + final.suffix, dir=final.parent)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{final.stem}.", suffix=".tmp" + final.suffix, dir=final.parent
+        )
         os.close(fd)
         staged.append((Path(tmp), final))
         return Path(tmp)

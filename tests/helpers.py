@@ -1,0 +1,15 @@
+"""Assertions shared by the tests."""
+
+import numpy as np
+
+
+def weight_invariants(weights, palette, colours):
+    """Assert the invariants every weight vector satisfies (DESIGN.md, issue 2 item 4)."""
+    from palette_core.constants import WEIGHT_MIN, WEIGHT_SUM_TOL
+
+    weights = np.asarray(weights, np.float64)
+    assert not np.isnan(weights).any()
+    assert weights.min() >= WEIGHT_MIN
+    assert np.abs(weights.sum(-1) - 1).max() < WEIGHT_SUM_TOL
+    if colours is not None:
+        assert np.abs(weights @ palette - colours).max() < 1e-6
