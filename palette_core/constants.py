@@ -11,9 +11,8 @@ VERTEX_TOL = 1e-10
 EDGE_TOL = 1e-10
 
 #: A colour closer than this to a face plane (and inside the face) takes
-#: barycentric weights of the face. Mean value coordinates lose accuracy as a
-#: point approaches a face (Ju et al. 2005, Sec. 3.3); below this distance the
-#: barycentric weights reproduce the colour better than 1e-7.
+#: barycentric weights of the face, reproducing it to within this distance;
+#: farther away the mean-vector form of MVC in ``kernels.py`` stays accurate.
 FACE_TOL = 1e-10
 
 #: A colour whose signed distance to every face plane is below this is inside.

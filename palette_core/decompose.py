@@ -40,7 +40,6 @@ class Decomposition:
     Attributes
     ----------
     stack : WeightStack
-    images : list of LoadedImage
     rmse : dict of str to float
         Per-image RMSE (0-255 scale, per channel, opaque pixels) of the stored
         weights times the stored palette against the image.
@@ -51,7 +50,6 @@ class Decomposition:
     """
 
     stack: WeightStack
-    images: list[LoadedImage]
     rmse: dict[str, float]
     rmse_overall: float
     timings: dict[str, float]
@@ -129,4 +127,4 @@ def decompose(
     }
     stack = WeightStack(palette, weights, [im.name for im in images], method,
                         hull_faces=poly.faces.astype(np.int32), meta=meta)
-    return Decomposition(stack, images, rmse, overall, timings)
+    return Decomposition(stack, rmse, overall, timings)

@@ -199,11 +199,6 @@ class ColourSet:
         channels = np.stack([unique >> (2 * bits), (unique >> bits) & mask, unique & mask], -1)
         return cls(channels / float(mask), counts, inverse, offsets)
 
-    @property
-    def palette_colours(self) -> np.ndarray:
-        """(P, 3) the colours that shape the palette (seen in an opaque pixel)."""
-        return self.colours[self.counts > 0]
-
     def image_indices(self, i: int) -> np.ndarray:
         """Indices into ``colours`` of image ``i``'s pixels, in raster order."""
         return self.inverse[self.offsets[i] : self.offsets[i + 1]]

@@ -55,11 +55,6 @@ class WeightStack:
     hull_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32))
     meta: dict = field(default_factory=dict)
 
-    @property
-    def n_terms(self) -> int:
-        """M, the number of weight channels."""
-        return n_terms(len(self.palette), self.basis, self.order)
-
 
 def n_terms(k: int, basis: str, order: int) -> int:
     """Number of weight channels M for K palette colours (C(K + n, n) for transport order n)."""
