@@ -25,3 +25,11 @@ RANK_TOL = 1e-9
 #: Invariants every weight vector satisfies (the tests check them).
 WEIGHT_MIN = -1e-7
 WEIGHT_SUM_TOL = 1e-6
+
+#: HCL chroma (CIE L*a*b* units) under which a colour counts as achromatic: its
+#: hue neither steers a harmony fit nor moves. Turning the hue of such a colour
+#: moves it by at most 2 * C, under one just-noticeable difference (about 2.3).
+ACHROMATIC_CHROMA = 1.0
+
+#: A colour whose sRGB channels lie this far outside [0, 1] is out of gamut.
+GAMUT_TOL = 1e-9

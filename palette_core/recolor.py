@@ -19,6 +19,21 @@ from .errors import InputError
 _HEX = re.compile(r"^#?([0-9a-fA-F]{6})$")
 
 
+def transport_terms(k: int, order: int) -> list[tuple[int, ...]]:
+    """Palette indices multiplied in each transport term, in basis order (DESIGN.md).
+
+    Examples
+    --------
+    >>> transport_terms(2, 2)
+    [(), (0,), (1,), (0, 0), (0, 1), (1, 1)]
+    """
+    return [
+        combo
+        for degree in range(order + 1)
+        for combo in combinations_with_replacement(range(k), degree)
+    ]
+
+
 def transport_basis(palette: np.ndarray, order: int) -> np.ndarray:
     """(M, 3) terms of the light-transport polynomial in the palette colours.
 
@@ -33,8 +48,7 @@ def transport_basis(palette: np.ndarray, order: int) -> np.ndarray:
     palette = np.asarray(palette, np.float64)
     terms = [
         np.prod(palette[list(combo)], axis=0) if combo else np.ones(3)
-        for degree in range(order + 1)
-        for combo in combinations_with_replacement(range(len(palette)), degree)
+        for combo in transport_terms(len(palette), order)
     ]
     return np.array(terms)
 

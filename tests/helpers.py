@@ -13,3 +13,10 @@ def weight_invariants(weights, palette, colours):
     assert np.abs(weights.sum(-1) - 1).max() < WEIGHT_SUM_TOL
     if colours is not None:
         assert np.abs(weights @ palette - colours).max() < 1e-6
+
+
+def expect_error(main, argv, message, capsys):
+    """Assert that a CLI exits 2 with one line on stderr containing ``message``."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err

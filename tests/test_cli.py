@@ -9,7 +9,7 @@ from PIL import Image
 from palette_core import read_stack
 from palette_core.cli import decompose, recolor
 
-from .helpers import weight_invariants
+from .helpers import expect_error, weight_invariants
 
 
 def run_decompose(photo_dir, out, *extra):
@@ -52,12 +52,6 @@ def test_fewer_hull_vertices_than_k(tmp_path, capsys):
                            "-o", str(tmp_path / "o" / "w.npz")]) == 0
     assert "fewer than -k 6" in capsys.readouterr().err
     assert read_stack(tmp_path / "o" / "w.npz").palette.shape == (1, 3)
-
-
-def expect_error(main, argv, message, capsys):
-    assert main(argv) == 2
-    err = capsys.readouterr().err
-    assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
 @pytest.mark.parametrize(
