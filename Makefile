@@ -16,6 +16,7 @@ demo: $(BIN)/.installed
 	$(BIN)/palette-decompose examples/photos -k 6 -o $(DEMO_OUT)/weights.npz --layers $(DEMO_OUT)/layers --force
 	$(BIN)/python examples/edit_palette.py $(DEMO_OUT)/palette.json -o $(DEMO_OUT)/edited_palette.json --force
 	$(BIN)/palette-recolor $(DEMO_OUT)/weights.npz --palette $(DEMO_OUT)/edited_palette.json -o $(DEMO_OUT)/recolored --force
+	$(BIN)/palette-harmonize $(DEMO_OUT)/weights.npz --template all -o $(DEMO_OUT)/harmonized/weights.npz --render $(DEMO_OUT)/harmonized --force
 	@echo
 	@echo "Demo outputs in $(DEMO_OUT)/:"
 	@echo "  palette.png, palette.json      extracted palette (swatch and JSON)"
@@ -23,6 +24,8 @@ demo: $(BIN)/.installed
 	@echo "  layers/                        one weight map per palette colour per photo"
 	@echo "  edited_palette.json            the edited palette"
 	@echo "  recolored/                     every photo recoloured with the edited palette"
+	@echo "  harmonized/contact_sheet.png   the first photo harmonised by each of the seven templates"
+	@echo "  harmonized/TEMPLATE/           every photo harmonised, hue_wheel.png, palette.png"
 
 test: $(BIN)/.installed
 	$(BIN)/python -m pytest -q
