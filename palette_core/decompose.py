@@ -14,6 +14,7 @@ from .hull import extract_palette
 from .io import ColourSet, LoadedImage, find_images, load_images
 from .mvc import rgb_to_mvc_weights
 from .polytope import Polytope
+from .rgbxy import rgbxy_image_weights
 from .stack import WeightStack
 
 #: Above this many images, loading and weighting show progress bars.
@@ -29,8 +30,9 @@ def mvc_image_weights(
         yield unique[colour_set.image_indices(i)].reshape(*image.opaque.shape, -1)
 
 
-#: Weight methods by name: (colour set, images, palette polytope) -> weights per image.
-WEIGHT_METHODS = {"mvc": mvc_image_weights}
+#: Weight methods by name: (colour set, images, palette polytope, **options) -> weights
+#: per image.
+WEIGHT_METHODS = {"mvc": mvc_image_weights, "rgbxy": rgbxy_image_weights}
 
 
 @dataclass
@@ -61,6 +63,7 @@ def decompose(
     max_error: float | None = None,
     method: str = "mvc",
     dtype: str = "float32",
+    method_options: dict | None = None,
 ) -> Decomposition:
     """Decompose image files and folders into one shared palette and per-pixel weights.
 
@@ -74,6 +77,8 @@ def decompose(
         A key of ``WEIGHT_METHODS``.
     dtype : {"float32", "float16"}
         Storage type of the weights.
+    method_options : dict, optional
+        Keyword arguments of the weight method (``spatial_scale`` for rgbxy).
 
     Raises
     ------
@@ -98,7 +103,8 @@ def decompose(
     timings["palette"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    produced = WEIGHT_METHODS[method](colour_set, images, poly)
+    method_options = method_options or {}
+    produced = WEIGHT_METHODS[method](colour_set, images, poly, **method_options)
     weights = [w.astype(dtype) for w in tqdm(produced, total=len(images), desc="weights",
                                              unit="img", disable=not progress)]
     timings["weights"] = time.perf_counter() - start
@@ -119,6 +125,7 @@ def decompose(
         "k": k,
         "max_error": max_error,
         "dtype": dtype,
+        "method_options": method_options,
         "n_pixels": int(colour_set.offsets[-1]),
         "n_colours": len(colour_set.colours),
         "rmse": rmse,

@@ -32,6 +32,9 @@ def build_parser() -> ArgumentParser:
                              "with -k, at most K colours")
     parser.add_argument("--method", choices=sorted(WEIGHT_METHODS), default="mvc",
                         help="weight method (default mvc)")
+    parser.add_argument("--spatial-scale", type=float, default=None, metavar="S",
+                        help="rgbxy only: weight of canvas position against colour "
+                             "(default 1; X and Y run over [0, S])")
     parser.add_argument("-o", "--output", default="weights.npz",
                         help="weight stack to write (default weights.npz); palette.png and "
                              "palette.json go beside it")
@@ -52,6 +55,13 @@ def _run(args) -> int:
         raise InputError(f"-k must be at least 4, got {args.k}")
     if args.max_error is not None and not args.max_error >= 0:
         raise InputError(f"--max-error must be a non-negative number, got {args.max_error}")
+    options = {}
+    if args.spatial_scale is not None:
+        if args.method != "rgbxy":
+            raise InputError("--spatial-scale applies to --method rgbxy only")
+        if not 0 < args.spatial_scale < float("inf"):
+            raise InputError(f"--spatial-scale must be a positive number, got {args.spatial_scale}")
+        options["spatial_scale"] = args.spatial_scale
     k = 6 if args.k is None and args.max_error is None else args.k
     output = Path(args.output)
     if output.suffix != ".npz":
@@ -65,7 +75,7 @@ def _run(args) -> int:
                              "(use --force to write into it)")
         check_writable([layers / "probe"], True)
 
-    result = decompose(args.inputs, k, args.max_error, args.method, args.dtype)
+    result = decompose(args.inputs, k, args.max_error, args.method, args.dtype, options)
     stack = result.stack
     n_colours = len(stack.palette)
     if k is not None and n_colours < k and args.max_error is None:
