@@ -32,6 +32,7 @@ test: $(BIN)/.installed
 
 bench: $(BIN)/.installed
 	$(BIN)/python benchmarks/bench_decompose.py
+	$(BIN)/python benchmarks/bench_weights.py
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check .
