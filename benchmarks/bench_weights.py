@@ -33,7 +33,9 @@ def _memory_kib(field: str) -> int:
     return 0
 
 
-def measure(method: str, colour_set: ColourSet, image: LoadedImage, poly) -> tuple[dict, np.ndarray]:
+def measure(
+    method: str, colour_set: ColourSet, image: LoadedImage, poly
+) -> tuple[dict, np.ndarray]:
     Path("/proc/self/clear_refs").write_text("5")  # reset the peak resident set
     before = _memory_kib("VmRSS")
     start = time.perf_counter()

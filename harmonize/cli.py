@@ -74,9 +74,12 @@ def _run(args) -> int:
                for name in names}
     outputs = _output_paths(source, args.output, names, args.template == "all")
     render = Path(args.render) if args.render else None
-    folders = {name: render / name if args.template == "all" else render for name in names}
-    renders = _render_paths(stack, folders) if render else {}
-    sheet = render / "contact_sheet.png" if render and args.template == "all" else None
+    renders, sheet = {}, None
+    if render:
+        many = args.template == "all"
+        renders = _render_paths(stack, {name: render / name if many else render
+                                        for name in names})
+        sheet = render / "contact_sheet.png" if many else None
     check_writable([*outputs.values(), *(p for ps in renders.values() for p in ps),
                     *([sheet] if sheet else [])], args.force)
 

@@ -73,6 +73,12 @@ def test_all_templates_and_contact_sheet(stack_file, tmp_path, capsys):
     assert sheet.width == 4 * 256 and sheet.height > 2 * 256
 
 
+def test_all_templates_without_render(stack_file, tmp_path, capsys):
+    assert main([str(stack_file), "--template", "all", "-o", str(tmp_path / "o" / "h.npz")]) == 0
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == sorted(
+        f"h_{name}.npz" for name in TEMPLATES)
+
+
 def test_transport_stack(tmp_path, rng, capsys):
     weights = [rng.random((4, 4, 6)).astype(np.float32)]  # K = 2, order 2
     path = tmp_path / "t.npz"
