@@ -8,7 +8,7 @@ its nearest axis keeping lightness and chroma (``project``), and draw hue wheels
 
 from .fit import TemplateFit, fit_all_templates, fit_template, palette_shares, template_cost
 from .hcl import hcl_to_srgb, hcl_to_srgb_in_gamut, in_srgb_gamut, srgb_to_hcl
-from .project import Harmonization, harmonize_palette, project_palette
+from .project import Harmonization, harmonize_palette, harmonize_with_fit, project_palette
 from .render import contact_sheet, hue_wheel
 from .templates import TEMPLATES, Template, get_template
 
@@ -22,6 +22,7 @@ __all__ = [
     "fit_template",
     "get_template",
     "harmonize_palette",
+    "harmonize_with_fit",
     "hcl_to_srgb",
     "hcl_to_srgb_in_gamut",
     "hue_wheel",

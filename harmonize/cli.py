@@ -18,7 +18,7 @@ from palette_core.stack import WeightStack, read_stack, write_stack
 
 from .fit import fit_all_templates, palette_shares
 from .hcl import srgb_to_hcl
-from .project import Harmonization, harmonize_palette
+from .project import Harmonization, harmonize_with_fit
 from .render import contact_sheet, hue_wheel
 from .templates import TEMPLATES, get_template
 
@@ -70,7 +70,7 @@ def _run(args) -> int:
     else:
         names = [args.template]
 
-    results = {name: harmonize_palette(stack.palette, shares, name, args.strength)
+    results = {name: harmonize_with_fit(stack.palette, fits[name], args.strength)
                for name in names}
     outputs = _output_paths(source, args.output, names, args.template == "all")
     render = Path(args.render) if args.render else None

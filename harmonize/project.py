@@ -118,5 +118,10 @@ def harmonize_palette(
         fit = min(fit_all_templates(hcl, shares).values(), key=lambda f: f.cost)
     else:
         fit = fit_template(hcl, shares, get_template(template))
+    return harmonize_with_fit(palette, fit, strength)
+
+
+def harmonize_with_fit(palette: np.ndarray, fit: TemplateFit, strength: float) -> Harmonization:
+    """Project ``palette`` (K, 3) onto an already fitted template; no validation."""
     harmonized = project_palette(palette, fit, strength)
-    return Harmonization(fit, harmonized, hcl, srgb_to_hcl(harmonized), strength)
+    return Harmonization(fit, harmonized, srgb_to_hcl(palette), srgb_to_hcl(harmonized), strength)

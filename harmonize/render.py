@@ -9,6 +9,8 @@ where it came from.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
@@ -123,16 +125,19 @@ def _hue_rim(s: int, centre: float, radius: float) -> np.ndarray:
     yy, xx = np.mgrid[0:s, 0:s] + 0.5
     distance = np.hypot(xx - centre, yy - centre)
     hue = np.mod(np.rad2deg(np.arctan2(centre - yy, xx - centre)), 360.0)
-    hues = np.arange(360.0)
-    ring_colours = hcl_to_srgb_in_gamut(np.stack([hues, np.full(360, _RIM_CHROMA),
-                                                  np.full(360, _RIM_LIGHTNESS)], axis=-1))
     image = np.full((s, s, 3), 255, np.uint8)
-    disc = distance <= radius
-    image[disc] = 247
+    image[distance <= radius] = 247
     ring = (distance > 1.02 * radius) & (distance <= 1.10 * radius)
-    lookup = np.round(ring_colours * 255).astype(np.uint8)
-    image[ring] = lookup[np.round(hue[ring]).astype(int) % 360]
+    image[ring] = _rim_colours()[np.round(hue[ring]).astype(int) % 360]
     return image
+
+
+@lru_cache(maxsize=1)
+def _rim_colours() -> np.ndarray:
+    """(360, 3) uint8: each whole hue at the rim's chroma and lightness, in gamut."""
+    hcl = np.stack([np.arange(360.0), np.full(360, _RIM_CHROMA), np.full(360, _RIM_LIGHTNESS)],
+                   axis=-1)
+    return np.round(hcl_to_srgb_in_gamut(hcl) * 255).astype(np.uint8)
 
 
 def _box(xy: tuple[float, float], r: float) -> list[float]:

@@ -227,24 +227,24 @@ def rgbxy_image_weights(
     frame = _affine_frame(images, spatial_scale)
     dim = len(frame.basis)
     if dim == 0:  # one pixel, or one colour at one place: a single vertex
-        vertices, tessellation = frame.origin[None], None
+        local_vertices = np.zeros((1, 0))
     else:
         chunks = (frame.local(p) for _, _, p in _rgbxy_chunks(images, spatial_scale))
         local_vertices = _hull_vertices(chunks, dim)
-        vertices = frame.origin + local_vertices @ frame.basis
-        tessellation = Delaunay(local_vertices) if dim > 1 else None
-    mixing = star_coordinates(vertices[:, :3], poly)  # (V, K)
+    tessellation = Delaunay(local_vertices) if dim > 1 else None
+    vertex_colours = (frame.origin + local_vertices @ frame.basis)[:, :3]
+    mixing = star_coordinates(vertex_colours, poly)  # (V, K)
 
     weights = [np.empty((im.pixels.shape[0] * im.pixels.shape[1], len(poly.vertices)),
                         np.float32) for im in images]
     for i, part, points in _rgbxy_chunks(images, spatial_scale):
+        local = frame.local(points)
         if tessellation is not None:
-            index, coords = _barycentrics(tessellation, frame.local(points))
+            index, coords = _barycentrics(tessellation, local)
         elif dim == 1:
-            t = frame.local(points)[:, 0]
-            ends = frame.local(vertices)[:, 0]
-            u = np.clip((t - ends[0]) / (ends[1] - ends[0]), 0, 1)
-            index, coords = np.tile([0, 1], (len(t), 1)), np.stack([1 - u, u], axis=1)
+            ends = local_vertices[:, 0]
+            u = np.clip((local[:, 0] - ends[0]) / (ends[1] - ends[0]), 0, 1)
+            index, coords = np.tile([0, 1], (len(u), 1)), np.stack([1 - u, u], axis=1)
         else:
             index, coords = np.zeros((len(points), 1), int), np.ones((len(points), 1))
         weights[i][part] = np.einsum("nj,njk->nk", coords, mixing[index])
