@@ -1,0 +1,79 @@
+"""Pinhole cameras in the Blender / NeRF convention.
+
+Poses are camera-to-world (4, 4) matrices with OpenGL axes: the camera looks down
+its -z axis, +y is up in the image, +x to the right. World +y is up.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0  # low-discrepancy step for elevations
+SPLIT_PHASES = {"train": 0.0, "val": 1.0 / 3.0, "test": 2.0 / 3.0}  # views of splits interleave
+
+
+def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """(4, 4) camera-to-world pose of a camera at ``eye`` looking at ``target``.
+
+    Examples
+    --------
+    >>> look_at([4.0, 0, 0], [0.0, 0, 0]).round(6).tolist()
+    [[0.0, 0.0, 1.0, 4.0], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    """
+    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-12:  # looking straight up or down: any right will do
+        right = np.cross(forward, [0.0, 0.0, -1.0])
+    right /= np.linalg.norm(right)
+    pose = np.eye(4)
+    pose[:3, :4] = np.stack([right, np.cross(right, forward), -forward, eye], axis=1)
+    return pose
+
+
+def focal_from_fov(width: int, fov_x_degrees: float) -> float:
+    """Focal length in pixels for a horizontal field of view."""
+    return 0.5 * width / math.tan(0.5 * math.radians(fov_x_degrees))
+
+
+def rig_poses(rig: str, n: int, target, radius: float, elevation: tuple[float, float],
+              arc: float = 360.0, phase: float = 0.0) -> np.ndarray:
+    """(n, 4, 4) poses on a rig, all looking at ``target`` from distance ``radius``.
+
+    Parameters
+    ----------
+    rig : {"orbit", "hemisphere", "front-arc"}
+        ``orbit``: azimuths evenly around 360 degrees; ``front-arc``: evenly over
+        ``arc`` degrees centred on +z; elevations spread over ``elevation`` (low,
+        high) degrees by a golden-ratio sequence. ``hemisphere``: a Fibonacci
+        spiral, uniform in area between the low elevation and the pole.
+    phase : float in [0, 1)
+        Shift of the sequence in steps, so that splits get distinct views.
+    """
+    low, high = np.radians(elevation)
+    k = np.arange(n) + phase
+    if rig == "hemisphere":
+        azimuth = 2 * np.pi * ((k * GOLDEN) % 1.0)
+        elev = np.arcsin(np.sin(low) + (1 - np.sin(low)) * (k + 0.5) / (n + 1))
+    else:
+        if rig == "orbit":
+            azimuth = 2 * np.pi * k / n
+        else:
+            azimuth = np.radians(arc) * ((k + 0.5) / n - 0.5)
+        elev = low + (high - low) * ((k * GOLDEN + 0.5 * phase) % 1.0)
+    offsets = radius * np.stack([np.cos(elev) * np.sin(azimuth), np.sin(elev),
+                                 np.cos(elev) * np.cos(azimuth)], axis=-1)
+    target = np.asarray(target, np.float64)
+    return np.array([look_at(target + o, target) for o in offsets]).reshape(n, 4, 4)
+
+
+def blender_transforms(poses: np.ndarray, file_paths: list[str], fov_x_degrees: float) -> dict:
+    """A ``transforms_<split>.json`` dictionary (Blender synthetic-dataset layout)."""
+    return {
+        "camera_angle_x": math.radians(fov_x_degrees),
+        "frames": [{"file_path": path, "transform_matrix": pose.tolist()}
+                   for path, pose in zip(file_paths, poses)],
+    }

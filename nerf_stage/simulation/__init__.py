@@ -1,0 +1,30 @@
+"""Scene simulation: scene files, a numba path tracer that sorts light paths by the
+editable materials they hit, and Blender-format datasets with transport weights.
+"""
+
+from .scene import BUILTIN_SCENES, Scene, load_scene, parse_scene
+from .simulate import (
+    Simulation,
+    check_outdir,
+    render_terms,
+    simulate,
+    view_poses,
+    with_overrides,
+    with_palette,
+    write_dataset,
+)
+
+__all__ = [
+    "BUILTIN_SCENES",
+    "Scene",
+    "Simulation",
+    "check_outdir",
+    "load_scene",
+    "parse_scene",
+    "render_terms",
+    "simulate",
+    "view_poses",
+    "with_overrides",
+    "with_palette",
+    "write_dataset",
+]

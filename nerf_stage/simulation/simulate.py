@@ -1,0 +1,276 @@
+"""Simulate a scene: path trace every view, keep the light-transport weights, write a dataset.
+
+The dataset is a Blender synthetic-scene folder (``transforms_{train,val,test}.json``
+and RGBA PNGs, straight alpha = fraction of camera rays that hit the scene), plus,
+for scenes with editable materials, ``weights.npz`` (format v1, ``basis`` =
+``transport``) and ``materials.json``. Weights are premultiplied by alpha:
+``weights @ transport_basis(palette, order)`` is the image's colour times alpha.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from palette_core import __version__
+from palette_core.errors import InputError
+from palette_core.recolor import palette_to_hex, transport_basis
+from palette_core.stack import WeightStack, n_terms, write_stack
+
+from ..cameras import SPLIT_PHASES, blender_transforms, focal_from_fov, rig_poses
+from .geometry import next_term_table, scene_arrays
+from .kernels import trace_view
+from .scene import SPLITS, Scene
+
+GREY_TOL = 1e-12
+
+
+@dataclass
+class Simulation:
+    """Rendered views of one scene, in split order (train, val, test).
+
+    Attributes
+    ----------
+    names : list of str
+        ``<split>/r_<i>.png`` for each view.
+    poses : (N, 4, 4) float64
+        Camera-to-world matrices (OpenGL axes).
+    radiance : (N, H, W, 3) float64
+        Mean radiance per pixel, premultiplied by alpha, not clipped.
+    alpha : (N, H, W) float64
+        Fraction of camera rays that hit the scene.
+    weights : (N, H, W, M) float64 or None
+        Transport weights when the scene has editable materials.
+    palette : (K, 3) float64
+        Albedos of the editable materials.
+    order : int
+        Transport order kept.
+    seconds : float
+        Path-tracing time.
+    """
+
+    names: list[str]
+    poses: np.ndarray
+    radiance: np.ndarray
+    alpha: np.ndarray
+    weights: np.ndarray | None
+    palette: np.ndarray
+    order: int
+    seconds: float
+
+
+def with_overrides(scene: Scene, order=None, spp=None, resolution=None, views=None,
+                   seed=None, max_depth=None) -> Scene:
+    """A copy of ``scene`` with command-line overrides applied (None keeps the scene's value).
+
+    Raises
+    ------
+    InputError
+        If a value is out of range.
+    """
+    for name, value, low in (("order", order, 0), ("spp", spp, 1), ("resolution", resolution, 1),
+                             ("seed", seed, 0), ("max_depth", max_depth, 1)):
+        if value is not None and value < low:
+            raise InputError(f"{name} must be at least {low}, got {value}")
+    if views is not None and (len(views) != 3 or min(views) < 0 or views[0] < 1):
+        raise InputError(f"views must be TRAIN VAL TEST counts with TRAIN >= 1, got {views}")
+    render = scene.render
+    if order is not None:
+        if not scene.palette_materials:
+            raise InputError(f"scene {scene.name} has no editable material, so there is no "
+                             "transport order to set")
+        render = replace(render, order=order)
+    render = replace(render, spp=spp or render.spp,
+                     seed=render.seed if seed is None else seed,
+                     max_depth=render.max_depth if max_depth is None else max_depth)
+    camera = scene.camera
+    if resolution is not None:
+        camera = replace(camera, width=resolution, height=resolution)
+    if views is not None:
+        camera = replace(camera, views=dict(zip(SPLITS, views)))
+    return replace(scene, render=render, camera=camera)
+
+
+def with_palette(scene: Scene, palette: np.ndarray) -> Scene:
+    """A copy of ``scene`` whose editable materials take the (K, 3) ``palette`` albedos."""
+    palette = np.asarray(palette, np.float64)
+    editable = scene.palette_materials
+    if palette.shape != (len(editable), 3):
+        raise InputError(f"palette must have shape ({len(editable)}, 3) for scene {scene.name}, "
+                         f"got {palette.shape}")
+    colours = iter(palette)
+    materials = [replace(m, albedo=next(colours)) if m.editable else m for m in scene.materials]
+    return replace(scene, materials=materials)
+
+
+def view_poses(scene: Scene) -> tuple[list[str], np.ndarray]:
+    """Names (``<split>/r_<i>.png``) and (N, 4, 4) poses of every view, train then val then test."""
+    cam = scene.camera
+    names, poses = [], []
+    for split in SPLITS:
+        n = cam.views[split]
+        names += [f"{split}/r_{i:03d}.png" for i in range(n)]
+        poses.append(rig_poses(cam.rig, n, cam.target, cam.radius, cam.elevation, cam.arc,
+                               SPLIT_PHASES[split]))
+    return names, np.concatenate(poses)
+
+
+def render_terms(scene: Scene, poses: np.ndarray, split: bool, progress: bool = False):
+    """Path trace views; contributions sorted by transport term (``split``) or summed as RGB.
+
+    Returns
+    -------
+    terms : (N, H, W, M, 3) float64
+        Mean contribution per term (M = 1 when not ``split``).
+    alpha : (N, H, W) float64
+    """
+    arrays = scene_arrays(scene)
+    k, render, cam = len(scene.palette_materials), scene.render, scene.camera
+    table = next_term_table(k, render.order)
+    m = len(table) if split else 1
+    focal = focal_from_fov(cam.width, cam.fov)
+    terms = np.zeros((len(poses), cam.height * cam.width, m, 3))
+    alpha = np.zeros((len(poses), cam.height * cam.width))
+    for view in tqdm(range(len(poses)), desc=f"simulate {scene.name}", unit="view",
+                     disable=not progress):
+        trace_view(
+            np.ascontiguousarray(poses[view], np.float64), focal, cam.width, cam.height,
+            render.spp, render.max_depth, split, render.seed, view,
+            arrays.prim_kind, arrays.prim_data, arrays.prim_mat, arrays.groups,
+            arrays.mat_albedo, arrays.mat_texture, arrays.mat_tex_scale, arrays.mat_palette,
+            arrays.mat_emission, arrays.tex_info, arrays.tex_pixels,
+            arrays.area_lights, arrays.point_lights, table, terms[view], alpha[view],
+        )
+    shape = (len(poses), cam.height, cam.width)
+    return terms.reshape(*shape, m, 3), alpha.reshape(shape)
+
+
+def simulate(scene: Scene, progress: bool = True) -> Simulation:
+    """Render every view of ``scene``; with editable materials, keep the transport weights.
+
+    Raises
+    ------
+    InputError
+        If the scene has editable materials but a fixed material or a light is
+        coloured: format-v1 weights hold one number per term, which is exact only
+        when everything that is not a palette colour is grey.
+    """
+    palette = np.array([m.albedo for m in scene.palette_materials]).reshape(-1, 3)
+    split = len(palette) > 0
+    if split:
+        _require_grey_fixed(scene)
+    names, poses = view_poses(scene)
+    start = time.perf_counter()
+    terms, alpha = render_terms(scene, poses, split, progress)
+    seconds = time.perf_counter() - start
+    if split:
+        weights = terms.mean(-1)  # the three channels are equal: fixed factors are grey
+        radiance = weights @ transport_basis(palette, scene.render.order)
+    else:
+        weights, radiance = None, terms[..., 0, :]
+    return Simulation(names, poses, radiance, alpha, weights, palette, scene.render.order, seconds)
+
+
+def _require_grey_fixed(scene: Scene) -> None:
+    def grey(rgb) -> bool:
+        return np.ptp(rgb, axis=-1).max() <= GREY_TOL
+
+    for m in scene.materials:
+        colour = m.texture if m.texture is not None else m.albedo
+        if not m.editable and not grey(colour):
+            raise InputError(f"scene {scene.name}: fixed material {m.name!r} is coloured, but "
+                             "transport weights need grey fixed materials and lights (make it "
+                             "grey or editable)")
+    for i, light in enumerate(scene.lights):
+        if not grey(light.get("emission", light.get("intensity"))):
+            raise InputError(f"scene {scene.name}: lights[{i}] is coloured, but transport "
+                             "weights need white (grey) lights")
+
+
+def write_dataset(sim: Simulation, scene: Scene, outdir: str | os.PathLike, spec: str,
+                  force: bool = False) -> list[str]:
+    """Write ``sim`` as a Blender-format dataset into ``outdir``, atomically.
+
+    The folder is built beside ``outdir`` and renamed onto it at the end; an
+    existing non-empty ``outdir`` is replaced only with ``force``.
+
+    Returns
+    -------
+    list of str
+        The files written, relative to ``outdir``.
+    """
+    outdir = Path(outdir)
+    check_outdir(outdir, force)
+    outdir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
+    try:
+        written = _write_files(sim, scene, staging, spec)
+        if outdir.exists():
+            trash = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.old.", dir=outdir.parent))
+            os.replace(outdir, trash / "old")
+            os.replace(staging, outdir)
+            shutil.rmtree(trash)
+        else:
+            os.replace(staging, outdir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return written
+
+
+def check_outdir(outdir: str | os.PathLike, force: bool) -> None:
+    """Fail early if ``outdir`` is a file, a non-empty folder (without ``force``) or unwritable."""
+    outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(f"output {outdir} exists and is not a folder")
+    if outdir.is_dir() and any(outdir.iterdir()) and not force:
+        raise InputError(f"output folder {outdir} is not empty (use --force to replace it)")
+    parent = next(p for p in [outdir.parent, *outdir.parent.parents] if p.exists())
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write output {outdir}: {parent} is not a writable folder")
+
+
+def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[str]:
+    written = []
+    alpha = sim.alpha[..., None]
+    straight = np.divide(sim.radiance, alpha, out=np.zeros_like(sim.radiance), where=alpha > 0)
+    rgba = np.concatenate([np.clip(straight, 0, 1), sim.alpha[..., None]], axis=-1)
+    rgba = np.round(rgba * 255).astype(np.uint8)
+    for name, image in zip(sim.names, rgba):
+        (root / name).parent.mkdir(exist_ok=True)
+        Image.fromarray(image, "RGBA").save(root / name)
+        written.append(name)
+    for split in SPLITS:
+        index = [i for i, name in enumerate(sim.names) if name.startswith(split + "/")]
+        frames = blender_transforms(sim.poses[index], [sim.names[i][:-4] for i in index],
+                                    scene.camera.fov)
+        (root / f"transforms_{split}.json").write_text(json.dumps(frames, indent=2) + "\n")
+        written.append(f"transforms_{split}.json")
+    if sim.weights is None:
+        return written
+    render, cam = scene.render, scene.camera
+    meta = {
+        "version": __version__,
+        "scene": spec,
+        "order": sim.order, "max_depth": render.max_depth, "spp": render.spp,
+        "seed": render.seed, "resolution": [cam.width, cam.height], "views": cam.views,
+        "seconds": round(sim.seconds, 3),
+    }
+    assert sim.weights.shape[-1] == n_terms(len(sim.palette), "transport", sim.order)
+    stack = WeightStack(palette=sim.palette, weights=list(sim.weights.astype(np.float32)),
+                        names=sim.names, method="simulated", basis="transport",
+                        order=sim.order, meta=meta)
+    write_stack(stack, root / "weights.npz")
+    materials = {"materials": [m.name for m in scene.palette_materials],
+                 "palette": palette_to_hex(sim.palette)}
+    (root / "materials.json").write_text(json.dumps(materials, indent=2) + "\n")
+    return written + ["weights.npz", "materials.json"]
