@@ -19,7 +19,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
 
     Examples
     --------
-    >>> look_at([4.0, 0, 0], [0.0, 0, 0]).round(6).tolist()
+    >>> (look_at([4.0, 0, 0], [0.0, 0, 0]).round(6) + 0.0).tolist()  # + 0.0 clears -0.0
     [[0.0, 0.0, 1.0, 4.0], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
     """
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
