@@ -33,6 +33,7 @@ test: $(BIN)/.installed
 bench: $(BIN)/.installed
 	$(BIN)/python benchmarks/bench_decompose.py
 	$(BIN)/python benchmarks/bench_weights.py
+	$(BIN)/python benchmarks/bench_simulate.py
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check .

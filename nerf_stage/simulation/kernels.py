@@ -39,6 +39,7 @@ _PCG_INC = np.uint64(1442695040888963407)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
 _MIX2 = np.uint64(0x94D049BB133111EB)
 _S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
+_GOLDEN64 = np.uint64(0x9E3779B97F4A7C15)
 _TO_UNIT = 1.0 / 9007199254740992.0  # 2^-53
 
 
@@ -305,7 +306,7 @@ def trace_view(
     focal : focal length in pixels; width, height : image size.
     spp, max_depth : paths per pixel; surface vertices per path (1 = direct light).
     split : bool, sort contributions into transport terms (True) or render RGB (False).
-    seed, view_id : the random stream of pixel p of this view depends on these and p only.
+    seed, view_id : the random stream of path s of pixel p depends on these, p and s only.
     prim_kind (P,), prim_data (P, 18), prim_mat (P,), groups (G, 8) : geometry.
     mat_albedo (Mt, 3), mat_texture (Mt,), mat_tex_scale (Mt, 2), mat_palette (Mt,)
         (palette index, -1 for fixed), mat_emission (Mt, 3) : materials.
@@ -322,14 +323,16 @@ def trace_view(
         grid += 1
     for pixel in prange(n_pixels):
         row, col = pixel // width, pixel % width
-        state = _mix(np.uint64(seed) * np.uint64(0x9E3779B97F4A7C15)
-                     + np.uint64(view_id) * np.uint64(n_pixels) + np.uint64(pixel))
-        state, perms = _shuffled_strata(state, 1 + max_depth * (area_lights.shape[0] + 1), spp)
+        pixel_key = _mix(np.uint64(seed) * _GOLDEN64
+                         + np.uint64(view_id) * np.uint64(n_pixels) + np.uint64(pixel))
+        _, perms = _shuffled_strata(pixel_key, 1 + max_depth * (area_lights.shape[0] + 1), spp)
         surf = np.empty(5)
         albedo = np.empty(3)
         acc = out[pixel]
         hits = 0
         for sample in range(spp):
+            # each path has its own stream: paths cut short elsewhere do not shift it
+            state = _mix(pixel_key + np.uint64(sample + 1) * _GOLDEN64)
             state, jx, jy = _sample2d(state, perms, 0, sample, grid)
             pair = 1
             cx = (col + jx - 0.5 * width) / focal
