@@ -91,25 +91,25 @@ def scene_arrays(scene: Scene) -> SceneArrays:
     group_rows = [np.concatenate([boxes[a:b, 0].min(0) - BOX_PAD, boxes[a:b, 1].max(0) + BOX_PAD,
                                   [a, b]]) for a, b in groups if b > a]
 
-    textures = [m.texture for m in scene.materials if m.texture is not None]
-    tex_sizes = [t.shape[0] * t.shape[1] for t in textures]
-    tex_offsets = np.cumsum([0] + tex_sizes[:-1]) if textures else []
-    tex_index = iter(range(len(textures)))
-    palette_index = iter(range(len(scene.materials)))
-    lights_black = [np.zeros(3)] * len(emission)
+    # lights become black, untextured, fixed materials that emit
+    materials = scene.materials
+    textures = [m.texture for m in materials if m.texture is not None]
+    tex_offsets = np.cumsum([0] + [t.shape[0] * t.shape[1] for t in textures])
+    tex_ids = np.cumsum([m.texture is not None for m in materials]) - 1
+    palette_ids = np.cumsum([m.editable for m in materials]) - 1
+    n_lights = len(emission)
     return SceneArrays(
         prim_kind=prim_kind,
         prim_data=prim_data,
         prim_mat=np.array([p[2] for p in prims], np.int64),
         groups=np.array(group_rows, np.float64).reshape(-1, 8),
-        mat_albedo=np.array([m.albedo for m in scene.materials] + lights_black).reshape(-1, 3),
-        mat_texture=np.array([next(tex_index) if m.texture is not None else -1
-                              for m in scene.materials] + [-1] * len(emission), np.int64),
-        mat_tex_scale=np.array([m.texture_scale for m in scene.materials]
-                               + [(1.0, 1.0)] * len(emission), np.float64).reshape(-1, 2),
-        mat_palette=np.array([next(palette_index) if m.editable else -1
-                              for m in scene.materials] + [-1] * len(emission), np.int64),
-        mat_emission=np.array([np.zeros(3)] * n_materials + emission).reshape(-1, 3),
+        mat_albedo=np.array([m.albedo for m in materials] + [np.zeros(3)] * n_lights),
+        mat_texture=np.array([t if m.texture is not None else -1
+                              for m, t in zip(materials, tex_ids)] + [-1] * n_lights, np.int64),
+        mat_tex_scale=np.array([m.texture_scale for m in materials] + [(1.0, 1.0)] * n_lights),
+        mat_palette=np.array([p if m.editable else -1 for m, p in zip(materials, palette_ids)]
+                             + [-1] * n_lights, np.int64),
+        mat_emission=np.array([np.zeros(3)] * n_materials + emission),
         tex_info=np.array([(o, t.shape[0], t.shape[1]) for o, t in zip(tex_offsets, textures)],
                           np.int64).reshape(-1, 3),
         tex_pixels=(np.concatenate([t.reshape(-1, 3) for t in textures]) if textures
