@@ -316,6 +316,8 @@ def _scene_file(tmp_path, change):
     (lambda d: d["lights"].clear(), "'lights'"),
     (lambda d: d.update(colour=1), "unknown field 'colour'"),
     (lambda d: d["camera"].update(views={"train": 0}), "'camera.views.train'"),
+    (lambda d: d["objects"].append({"type": "mesh", "material": "floor", "path": "no.obj"}),
+     "'objects[1].path'"),
 ])
 def test_malformed_scene_names_the_field(tmp_path, capsys, change, message):
     expect_error(main, ["simulate", _scene_file(tmp_path, change), str(tmp_path / "out")],
