@@ -1,0 +1,255 @@
+"""Multi-view datasets: Blender and nerfstudio ``transforms`` files, and weight stacks.
+
+Two layouts are read:
+
+- Blender synthetic scenes: ``transforms_{train,val,test}.json`` with
+  ``camera_angle_x`` and ``frames[]`` (``file_path`` without or with suffix,
+  ``transform_matrix`` camera-to-world, OpenGL axes), as ``nerf-stage simulate``
+  writes them.
+- nerfstudio: one ``transforms.json`` with ``fl_x``, ``fl_y``, ``cx``, ``cy``,
+  ``w``, ``h`` and ``frames[]``; every eighth frame is held out for testing
+  (the LLFF convention), there is no validation split.
+
+Images are read as RGBA floats and composited on a chosen background.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from palette_core.errors import InputError
+from palette_core.stack import WeightStack
+
+SPLITS = ("train", "val", "test")
+NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
+
+
+@dataclass
+class Intrinsics:
+    """Pinhole camera shared by all frames: focal lengths and principal point in pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+@dataclass
+class Dataset:
+    """Frames of one scene.
+
+    Attributes
+    ----------
+    root : Path
+    names : list of str
+        Image paths relative to ``root``, with suffix and forward slashes.
+    splits : list of str
+        ``"train"``, ``"val"`` or ``"test"`` per frame.
+    poses : (N, 4, 4) float64
+        Camera-to-world matrices, OpenGL axes.
+    intrinsics : Intrinsics
+    images : (N, H, W, 3) float32
+        Colours composited on ``background``.
+    alpha : (N, H, W) float32
+    background : (3,) float64
+    """
+
+    root: Path
+    names: list[str]
+    splits: list[str]
+    poses: np.ndarray
+    intrinsics: Intrinsics
+    images: np.ndarray
+    alpha: np.ndarray
+    background: np.ndarray
+
+    def indices(self, split: str) -> np.ndarray:
+        """Frame indices of one split."""
+        return np.array([i for i, s in enumerate(self.splits) if s == split], np.int64)
+
+
+def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> Dataset:
+    """Read a Blender or nerfstudio dataset folder.
+
+    Raises
+    ------
+    InputError
+        If the folder holds neither layout, a file is malformed (the message
+        names the file and the field), an image is missing or unreadable, or the
+        images differ in size.
+    """
+    root = Path(root)
+    background = np.asarray(background, np.float64).reshape(3)
+    if (root / "transforms_train.json").is_file():
+        names, splits, poses, intrinsics = _read_blender(root)
+    elif (root / "transforms.json").is_file():
+        names, splits, poses, intrinsics = _read_nerfstudio(root)
+    else:
+        raise InputError(f"{root} holds neither transforms_train.json (Blender layout) "
+                         "nor transforms.json (nerfstudio layout)")
+    rgba = [_read_rgba(root / name) for name in names]
+    wrong = [n for n, im in zip(names, rgba) if im.shape[:2] != (intrinsics.height,
+                                                                   intrinsics.width)]
+    if wrong:
+        raise InputError(f"{root}: images {_listing(wrong)} are not "
+                         f"{intrinsics.width}x{intrinsics.height} as the cameras say")
+    rgba = np.stack(rgba)
+    alpha = rgba[..., 3]
+    images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
+    return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
+                   alpha, background)
+
+
+def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> np.ndarray:
+    """(n, H, W, M) weights of the frames of ``split``, matched to the stack by image name.
+
+    A stack name matches a frame when it equals the frame's path relative to the
+    dataset root or is a trailing part of it (``r_000.png`` for a stack
+    decomposed from ``train/`` alone).
+
+    Raises
+    ------
+    InputError
+        Naming frames of the split that have no weights, stack images that match
+        no frame of the dataset, names that match several frames, or weights whose
+        size differs from the images.
+    """
+    frames = [dataset.names[i] for i in dataset.indices(split)]
+    by_name: dict[str, int] = {}
+    unmatched = []
+    for j, name in enumerate(stack.names):
+        matches = [f for f in frames if _same_image(f, name)]
+        if len(matches) > 1:
+            raise InputError(f"weight stack image {name!r} matches several {split} frames: "
+                             f"{', '.join(matches[:3])}")
+        if matches:
+            by_name[matches[0]] = j
+        elif not any(_same_image(f, name) for f in dataset.names):
+            unmatched.append(name)
+    if unmatched:
+        raise InputError(f"weight stack has images that are not frames of {dataset.root}: "
+                         + _listing(unmatched))
+    missing = [f for f in frames if f not in by_name]
+    if missing:
+        raise InputError(f"{split} frames without weights in the stack: {_listing(missing)}")
+    weights = [stack.weights[by_name[f]] for f in frames]
+    size = (dataset.intrinsics.height, dataset.intrinsics.width)
+    wrong = [f for f, w in zip(frames, weights) if w.shape[:2] != size]
+    if wrong:
+        raise InputError(f"weights of {_listing(wrong)} are not {size[1]}x{size[0]} "
+                         "like the images")
+    return np.stack(weights).astype(np.float32)
+
+
+def _same_image(frame: str, name: str) -> bool:
+    frame_parts, name_parts = PurePosixPath(frame).parts, PurePosixPath(name).parts
+    return frame_parts[len(frame_parts) - len(name_parts):] == name_parts
+
+
+def _listing(names: list[str], most: int = 5) -> str:
+    more = f" and {len(names) - most} more" if len(names) > most else ""
+    return ", ".join(names[:most]) + more
+
+
+def _load_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
+        raise InputError(f"{path}: expected an object with a 'frames' list")
+    return data
+
+
+def _field(data: dict, key: str, path: Path, kind=float):
+    value = data.get(key)
+    if (not isinstance(value, (int, float)) or isinstance(value, bool)
+            or not math.isfinite(value) or value <= 0):
+        raise InputError(f"{path}: field {key!r} must be a positive number, got {value!r}")
+    return kind(value)
+
+
+def _frames(data: dict, path: Path, default_suffix: str) -> tuple[list[str], list]:
+    """Image names (relative to root, with suffix) and poses of a ``frames`` list."""
+    names, poses = [], []
+    for i, frame in enumerate(data["frames"]):
+        where = f"{path}: frames[{i}]"
+        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+            raise InputError(f"{where}: missing 'file_path'")
+        name = frame["file_path"]
+        if not PurePosixPath(name).suffix:  # Blender's file_path leaves out ".png"
+            name += default_suffix
+        pose = np.asarray(frame.get("transform_matrix"), dtype=object)
+        if pose.shape not in ((4, 4), (3, 4)):
+            raise InputError(f"{where}: 'transform_matrix' must be 4x4, got shape {pose.shape}")
+        try:
+            pose = pose.astype(np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: 'transform_matrix' must hold numbers") from None
+        names.append(PurePosixPath(os.path.normpath(name)).as_posix())
+        poses.append(np.vstack([pose[:3], [0.0, 0.0, 0.0, 1.0]]))
+    return names, poses
+
+
+def _read_blender(root: Path):
+    names, splits, poses, angle = [], [], [], None
+    for split in SPLITS:
+        path = root / f"transforms_{split}.json"
+        if not path.is_file():
+            continue
+        data = _load_json(path)
+        split_angle = _field(data, "camera_angle_x", path)
+        if angle is not None and abs(split_angle - angle) > 1e-9:
+            raise InputError(f"{path}: camera_angle_x {split_angle} differs from the train split's")
+        angle = split_angle
+        split_names, split_poses = _frames(data, path, ".png")
+        names += split_names
+        poses += split_poses
+        splits += [split] * len(split_names)
+    if not names:
+        raise InputError(f"{root}: the transforms files list no frames")
+    with _open_image(root / names[0]) as im:
+        width, height = im.size
+    focal = 0.5 * width / math.tan(0.5 * angle)
+    intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
+    return names, splits, np.array(poses), intrinsics
+
+
+def _read_nerfstudio(root: Path):
+    path = root / "transforms.json"
+    data = _load_json(path)
+    intrinsics = Intrinsics(
+        width=_field(data, "w", path, int), height=_field(data, "h", path, int),
+        fx=_field(data, "fl_x", path), fy=_field(data, "fl_y", path),
+        cx=_field(data, "cx", path), cy=_field(data, "cy", path),
+    )
+    names, poses = _frames(data, path, "")
+    if not names:
+        raise InputError(f"{path} lists no frames")
+    splits = ["test" if i % NERFSTUDIO_HOLDOUT == NERFSTUDIO_HOLDOUT - 1 and len(names) > 1
+              else "train" for i in range(len(names))]
+    return names, splits, np.array(poses), intrinsics
+
+
+def _open_image(path: Path) -> Image.Image:
+    try:
+        return Image.open(path)
+    except FileNotFoundError:
+        raise InputError(f"image {path} does not exist") from None
+    except (OSError, UnidentifiedImageError) as exc:
+        raise InputError(f"cannot read image {path}: {exc}") from None
+
+
+def _read_rgba(path: Path) -> np.ndarray:
+    """(H, W, 4) float32 in [0, 1]; images without alpha are opaque."""
+    with _open_image(path) as im:
+        return np.asarray(im.convert("RGBA"), np.float32) / 255.0

@@ -1,0 +1,125 @@
+"""Dataset loaders (Blender, nerfstudio) and joining weight stacks to frames."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from nerf_stage.cli import main
+from nerf_stage.data import join_weights, load_dataset
+from palette_core.errors import InputError
+from palette_core.recolor import weights_to_rgb
+from palette_core.stack import WeightStack, read_stack
+
+POSE = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]
+
+
+def write_png(path, rgba):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.asarray(rgba, np.uint8)).save(path)
+
+
+def blender_folder(root, splits=(("train", 2), ("test", 1)), size=(6, 4)):
+    """Hand-written Blender layout: half-transparent red images, file_path without suffix."""
+    w, h = size
+    for split, n in splits:
+        frames = []
+        for i in range(n):
+            write_png(root / split / f"r_{i}.png", np.tile([255, 0, 0, 128], (h, w, 1)))
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": POSE})
+        (root / f"transforms_{split}.json").write_text(
+            json.dumps({"camera_angle_x": 0.6, "frames": frames}))
+    return root
+
+
+def test_blender_layout(tmp_path):
+    data = load_dataset(blender_folder(tmp_path), background=(0, 0, 1))
+    assert data.names == ["train/r_0.png", "train/r_1.png", "test/r_0.png"]
+    assert data.splits == ["train", "train", "test"]
+    assert data.indices("test").tolist() == [2]
+    assert data.poses.shape == (3, 4, 4) and np.allclose(data.poses[0], POSE)
+    k = data.intrinsics
+    assert (k.width, k.height, k.cx, k.cy) == (6, 4, 3, 2)
+    assert k.fx == k.fy == pytest.approx(0.5 * 6 / math.tan(0.3))
+    a = 128 / 255
+    assert np.allclose(data.alpha, a)
+    assert np.allclose(data.images[0, 0, 0], [a, 0, 1 - a], atol=1e-6)  # red over blue
+
+
+def test_nerfstudio_layout(tmp_path):
+    frames = []
+    for i in range(9):
+        write_png(tmp_path / "images" / f"frame_{i:03d}.png", np.full((4, 6, 3), 100))
+        frames.append({"file_path": f"images/frame_{i:03d}.png", "transform_matrix": POSE[:3]})
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"fl_x": 5.0, "fl_y": 6.0, "cx": 3.1, "cy": 1.9, "w": 6, "h": 4, "frames": frames}))
+    data = load_dataset(tmp_path)
+    k = data.intrinsics
+    assert (k.fx, k.fy, k.cx, k.cy, k.width, k.height) == (5, 6, 3.1, 1.9, 6, 4)
+    assert data.indices("test").tolist() == [7] and len(data.indices("train")) == 8
+    assert np.allclose(data.poses[0], POSE) and np.all(data.alpha == 1)
+
+
+def test_simulated_dataset_joins_its_weights(tmp_path):
+    out = tmp_path / "cb"
+    assert main(["simulate", "cornell-box", str(out), "--resolution", "8", "--spp", "2",
+                 "--views", "3", "1", "2"]) == 0
+    data = load_dataset(out, background=(0, 0, 0))
+    stack = read_stack(out / "weights.npz")
+    train = join_weights(data, stack, "train")
+    test = join_weights(data, stack, "test")
+    assert train.shape == (3, 8, 8, 15) and test.shape == (2, 8, 8, 15)
+    assert np.array_equal(test[1], stack.weights[5])
+    # on a black background the composited image is the premultiplied colour
+    recomposed = np.clip(weights_to_rgb(train, stack.palette, "transport", 2), 0, 1)
+    assert np.abs(recomposed - data.images[data.indices("train")]).max() < 1.5 / 255
+
+
+def _stack(names, size=(4, 6), m=3):
+    return WeightStack(palette=np.eye(3), weights=[np.full((*size, m), 1 / m)] * len(names),
+                       names=names)
+
+
+def test_stack_from_one_split_folder_matches_by_trailing_name(tmp_path):
+    data = load_dataset(blender_folder(tmp_path))
+    weights = join_weights(data, _stack(["r_0.png", "r_1.png"]), "train")
+    assert weights.shape == (2, 4, 6, 3)
+
+
+def test_join_errors_name_the_frames(tmp_path):
+    data = load_dataset(blender_folder(tmp_path))
+    with pytest.raises(InputError, match="train frames without weights in the stack: train/r_1"):
+        join_weights(data, _stack(["train/r_0.png"]))
+    with pytest.raises(InputError, match="not frames of .*: other.png"):
+        join_weights(data, _stack(["train/r_0.png", "train/r_1.png", "other.png"]))
+    with pytest.raises(InputError, match="are not 6x4"):
+        join_weights(data, _stack(["train/r_0.png", "train/r_1.png"], size=(5, 5)))
+    data.names[1] = "train/b/r_0.png"  # two train frames now end in r_0.png
+    with pytest.raises(InputError, match="matches several train frames"):
+        join_weights(data, _stack(["r_0.png"]))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda root: (root / "transforms_train.json").write_text("{"), "not valid JSON"),
+    (lambda root: (root / "transforms_train.json").write_text(
+        json.dumps({"camera_angle_x": -1, "frames": []})), "'camera_angle_x'"),
+    (lambda root: (root / "transforms_train.json").write_text(json.dumps(
+        {"camera_angle_x": 0.6, "frames": [{"file_path": "train/r_0",
+                                            "transform_matrix": [[1, 0]]}]})),
+     "'transform_matrix' must be 4x4"),
+    (lambda root: (root / "train" / "r_1.png").unlink(), "does not exist"),
+    (lambda root: (root / "train" / "r_1.png").write_bytes(b"no png"), "cannot read image"),
+    (lambda root: write_png(root / "train" / "r_1.png", np.zeros((5, 5, 4))), "images"),
+])
+def test_malformed_datasets(tmp_path, edit, message):
+    root = blender_folder(tmp_path)
+    edit(root)
+    with pytest.raises(InputError, match=message):
+        load_dataset(root)
+
+
+def test_folder_without_transforms(tmp_path):
+    with pytest.raises(InputError, match="neither transforms_train.json"):
+        load_dataset(tmp_path)
