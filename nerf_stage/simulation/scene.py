@@ -296,7 +296,7 @@ def _parse_object(reader: _Fields, obj, where: str, materials: list[str], root: 
             parsed[key] = value
         else:
             parsed[key] = _load_mesh(reader, value, at, root)
-    if kind in ("box",) and not (parsed["size"] > 0).all():
+    if kind == "box" and not (parsed["size"] > 0).all():
         raise reader.fail(f"{where}.size", "3 positive numbers", obj["size"])
     if kind == "cylinder" and np.linalg.norm(parsed["axis"]) == 0:
         raise reader.fail(f"{where}.axis", "a non-zero vector", obj["axis"])

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from palette_core import __version__
 from palette_core.errors import InputError
 from palette_core.recolor import palette_to_hex, transport_basis
-from palette_core.stack import WeightStack, n_terms, write_stack
+from palette_core.stack import WeightStack, write_stack
 
 from ..cameras import SPLIT_PHASES, blender_transforms, focal_from_fov, rig_poses
 from .geometry import next_term_table, scene_arrays
@@ -89,7 +89,7 @@ def with_overrides(scene: Scene, order=None, spp=None, resolution=None, views=No
             raise InputError(f"scene {scene.name} has no editable material, so there is no "
                              "transport order to set")
         render = replace(render, order=order)
-    render = replace(render, spp=spp or render.spp,
+    render = replace(render, spp=render.spp if spp is None else spp,
                      seed=render.seed if seed is None else seed,
                      max_depth=render.max_depth if max_depth is None else max_depth)
     camera = scene.camera
@@ -265,7 +265,6 @@ def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[s
         "seed": render.seed, "resolution": [cam.width, cam.height], "views": cam.views,
         "seconds": round(sim.seconds, 3),
     }
-    assert sim.weights.shape[-1] == n_terms(len(sim.palette), "transport", sim.order)
     stack = WeightStack(palette=sim.palette, weights=list(sim.weights.astype(np.float32)),
                         names=sim.names, method="simulated", basis="transport",
                         order=sim.order, meta=meta)
