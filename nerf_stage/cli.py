@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from palette_core.cli import ArgumentParser, run_cli
 
@@ -51,7 +52,8 @@ def _run(args) -> int:
                            resolution=args.resolution, views=args.views, seed=args.seed)
     check_outdir(args.outdir, args.force)
     sim = simulate(scene)
-    written = write_dataset(sim, scene, args.outdir, args.scene, force=args.force)
+    spec = args.scene if args.scene in BUILTIN_SCENES else str(Path(args.scene).resolve())
+    written = write_dataset(sim, scene, args.outdir, spec, force=args.force)
     cam, render = scene.camera, scene.render
     print(f"{scene.name}: {len(sim.names)} views of {cam.width}x{cam.height}, {render.spp} spp, "
           f"{render.light} light" + (f", order {sim.order}" if sim.weights is not None else "")
