@@ -90,13 +90,17 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> Dataset
     root = Path(root)
     background = np.asarray(background, np.float64).reshape(3)
     if (root / "transforms_train.json").is_file():
-        names, splits, poses, intrinsics = _read_blender(root)
+        names, splits, poses, angle = _read_blender(root)
+        rgba = [_read_rgba(root / name) for name in names]
+        height, width = rgba[0].shape[:2]
+        focal = 0.5 * width / math.tan(0.5 * angle)
+        intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
     elif (root / "transforms.json").is_file():
         names, splits, poses, intrinsics = _read_nerfstudio(root)
+        rgba = [_read_rgba(root / name) for name in names]
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout) "
                          "nor transforms.json (nerfstudio layout)")
-    rgba = [_read_rgba(root / name) for name in names]
     wrong = [n for n, im in zip(names, rgba) if im.shape[:2] != (intrinsics.height,
                                                                    intrinsics.width)]
     if wrong:
@@ -217,11 +221,7 @@ def _read_blender(root: Path):
         splits += [split] * len(split_names)
     if not names:
         raise InputError(f"{root}: the transforms files list no frames")
-    with _open_image(root / names[0]) as im:
-        width, height = im.size
-    focal = 0.5 * width / math.tan(0.5 * angle)
-    intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
-    return names, splits, np.array(poses), intrinsics
+    return names, splits, np.array(poses), angle
 
 
 def _read_nerfstudio(root: Path):
@@ -240,16 +240,12 @@ def _read_nerfstudio(root: Path):
     return names, splits, np.array(poses), intrinsics
 
 
-def _open_image(path: Path) -> Image.Image:
+def _read_rgba(path: Path) -> np.ndarray:
+    """(H, W, 4) float32 in [0, 1]; images without alpha are opaque."""
     try:
-        return Image.open(path)
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGBA"), np.float32) / 255.0
     except FileNotFoundError:
         raise InputError(f"image {path} does not exist") from None
     except (OSError, UnidentifiedImageError) as exc:
         raise InputError(f"cannot read image {path}: {exc}") from None
-
-
-def _read_rgba(path: Path) -> np.ndarray:
-    """(H, W, 4) float32 in [0, 1]; images without alpha are opaque."""
-    with _open_image(path) as im:
-        return np.asarray(im.convert("RGBA"), np.float32) / 255.0

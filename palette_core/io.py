@@ -272,7 +272,7 @@ def check_writable(paths: list[Path], force: bool) -> None:
 
 
 def save_image(path: Path, rgb: np.ndarray) -> None:
-    """Write (H, W, 3) or (H, W) floats in [0, 1] as an 8-bit image; the suffix picks the format."""
+    """Write (H, W, 3), (H, W, 4) or (H, W) floats in [0, 1] as an 8-bit image (suffix = format)."""
     data = np.round(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)
     fmt = Image.registered_extensions().get(path.suffix.lower(), "PNG")
     Image.fromarray(data).save(path, format=fmt, **({"quality": 95} if fmt == "JPEG" else {}))

@@ -255,6 +255,16 @@ def _occluded(prim_kind, prim_data, groups, ox, oy, oz, dx, dy, dz, tmax):
 
 
 @njit(cache=True, inline="always")
+def _toward(sx, sy, sz, nx, ny, nz, tx, ty, tz):
+    """Unit direction from s to t, squared distance, and the cosine with normal n."""
+    lx, ly, lz = tx - sx, ty - sy, tz - sz
+    dist2 = lx * lx + ly * ly + lz * lz
+    dist = math.sqrt(dist2)
+    lx, ly, lz = lx / dist, ly / dist, lz / dist
+    return lx, ly, lz, dist2, _dot(nx, ny, nz, lx, ly, lz)
+
+
+@njit(cache=True, inline="always")
 def _hits_box(box, ox, oy, oz, dx, dy, dz, tmax):
     """Slab test of the ray against an axis-aligned box over (0, tmax)."""
     lo, hi = 0.0, tmax
@@ -381,18 +391,14 @@ def trace_view(
                     light = area_lights[li]
                     state, u1, u2 = _sample2d(state, perms, pair, sample, grid)
                     pair += 1
-                    lx = light[0] + u1 * light[3] + u2 * light[6] - sx
-                    ly = light[1] + u1 * light[4] + u2 * light[7] - sy
-                    lz = light[2] + u1 * light[5] + u2 * light[8] - sz
-                    dist2 = lx * lx + ly * ly + lz * lz
-                    dist = math.sqrt(dist2)
-                    lx, ly, lz = lx / dist, ly / dist, lz / dist
-                    cos_s = _dot(nx, ny, nz, lx, ly, lz)
+                    lx, ly, lz, dist2, cos_s = _toward(
+                        sx, sy, sz, nx, ny, nz, light[0] + u1 * light[3] + u2 * light[6],
+                        light[1] + u1 * light[4] + u2 * light[7],
+                        light[2] + u1 * light[5] + u2 * light[8])
                     cos_l = -_dot(light[9], light[10], light[11], lx, ly, lz)
-                    if cos_s <= 0.0 or cos_l <= 0.0:
-                        continue
-                    tmax = dist * (1.0 - SHADOW_SLACK)
-                    if _occluded(prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz, tmax):
+                    if cos_s <= 0.0 or cos_l <= 0.0 or _occluded(
+                            prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz,
+                            math.sqrt(dist2) * (1.0 - SHADOW_SLACK)):
                         continue
                     f = cos_s * cos_l * light[12] / (math.pi * dist2)
                     acc[slot, 0] += r * f * light[13]
@@ -400,15 +406,11 @@ def trace_view(
                     acc[slot, 2] += b * f * light[15]
                 for li in range(point_lights.shape[0]):
                     light = point_lights[li]
-                    lx, ly, lz = light[0] - sx, light[1] - sy, light[2] - sz
-                    dist2 = lx * lx + ly * ly + lz * lz
-                    dist = math.sqrt(dist2)
-                    lx, ly, lz = lx / dist, ly / dist, lz / dist
-                    cos_s = _dot(nx, ny, nz, lx, ly, lz)
-                    if cos_s <= 0.0:
-                        continue
-                    tmax = dist * (1.0 - SHADOW_SLACK)
-                    if _occluded(prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz, tmax):
+                    lx, ly, lz, dist2, cos_s = _toward(sx, sy, sz, nx, ny, nz,
+                                                       light[0], light[1], light[2])
+                    if cos_s <= 0.0 or _occluded(
+                            prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz,
+                            math.sqrt(dist2) * (1.0 - SHADOW_SLACK)):
                         continue
                     f = cos_s / (math.pi * dist2)
                     acc[slot, 0] += r * f * light[3]

@@ -18,11 +18,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 from tqdm import tqdm
 
 from palette_core import __version__
 from palette_core.errors import InputError
+from palette_core.io import save_image
 from palette_core.recolor import palette_to_hex, transport_basis
 from palette_core.stack import WeightStack, write_stack
 
@@ -243,11 +243,10 @@ def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[s
     written = []
     alpha = sim.alpha[..., None]
     straight = np.divide(sim.radiance, alpha, out=np.zeros_like(sim.radiance), where=alpha > 0)
-    rgba = np.concatenate([np.clip(straight, 0, 1), sim.alpha[..., None]], axis=-1)
-    rgba = np.round(rgba * 255).astype(np.uint8)
+    rgba = np.concatenate([straight, alpha], axis=-1)
     for name, image in zip(sim.names, rgba):
         (root / name).parent.mkdir(exist_ok=True)
-        Image.fromarray(image, "RGBA").save(root / name)
+        save_image(root / name, image)
         written.append(name)
     for split in SPLITS:
         index = [i for i, name in enumerate(sim.names) if name.startswith(split + "/")]
