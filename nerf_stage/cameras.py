@@ -77,3 +77,36 @@ def blender_transforms(poses: np.ndarray, file_paths: list[str], fov_x_degrees: 
         "frames": [{"file_path": path, "transform_matrix": pose.tolist()}
                    for path, pose in zip(file_paths, poses)],
     }
+
+
+def orbit_poses(poses: np.ndarray, n: int, centre) -> np.ndarray:
+    """(n, 4, 4) turntable around ``centre`` at the cameras' mean distance and elevation.
+
+    Up is the cameras' mean up vector. When the cameras surround the scene (no
+    azimuth gap over 60 degrees) the turntable goes once around; otherwise it
+    sweeps their azimuth range forth and back, so the GIF loops smoothly.
+    """
+    centre = np.asarray(centre, np.float64)
+    up = poses[:, :3, 1].mean(0)
+    up /= np.linalg.norm(up)
+    offsets = poses[:, :3, 3] - centre
+    distance = np.linalg.norm(offsets, axis=1)
+    elevation = np.arcsin(np.clip(offsets @ up / distance, -1, 1)).mean()
+    flat = offsets - np.outer(offsets @ up, up)
+    e1 = flat.mean(0) if np.linalg.norm(flat.mean(0)) > 1e-9 else flat[0]
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    azimuth = np.sort(np.arctan2(flat @ e2, flat @ e1))
+    gaps = np.diff(np.append(azimuth, azimuth[0] + 2 * np.pi))
+    widest = int(np.argmax(gaps))
+    k = np.arange(n) / n
+    if gaps[widest] < np.radians(60):
+        sweep = azimuth[0] + 2 * np.pi * k
+    else:
+        start = azimuth[(widest + 1) % len(azimuth)]
+        sweep = start + (2 * np.pi - gaps[widest]) * (1 - np.cos(2 * np.pi * k)) / 2
+    radius = distance.mean()
+    eyes = centre + radius * (np.cos(elevation) * (np.cos(sweep)[:, None] * e1
+                                                   + np.sin(sweep)[:, None] * e2)
+                              + np.sin(elevation) * up)
+    return np.array([look_at(eye, centre, up) for eye in eyes]).reshape(n, 4, 4)

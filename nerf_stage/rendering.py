@@ -1,0 +1,262 @@
+"""Rays, empty-space skipping and volume compositing of M channels.
+
+Compositing does not care whether a sample carries 3 colour channels or M palette
+weights: ``composite`` gives each sample its weight T_i alpha_i, and
+``render_rays`` sums weight x value per ray. Weight renders come out premultiplied
+by the accumulated opacity; a colour is ``weights @ basis + (1 - acc) background``.
+
+All positions live in the normalised scene box of ``SceneBox``.
+
+References
+----------
+B. Mildenhall et al. NeRF. ECCV 2020, eq. 3 (quadrature of the volume rendering integral).
+T. Mueller et al. Instant neural graphics primitives. SIGGRAPH 2022 (occupancy grid).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.ndimage import maximum_filter
+
+from .data import Intrinsics
+
+TERMINATION = 1e-4  # samples behind less transmittance skip the colour part
+CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
+OCCUPIED_ALPHA = 0.01  # a cell is occupied when one step through it is this opaque
+
+
+@dataclass
+class SceneBox:
+    """Axis-aligned box around the scene; positions are normalised as (x - centre) / scale.
+
+    Attributes
+    ----------
+    centre : (3,) float
+    half : (3,) float
+        World half sizes.
+    """
+
+    centre: np.ndarray
+    half: np.ndarray
+
+    @property
+    def scale(self) -> float:
+        return float(np.max(self.half))
+
+    @property
+    def extent(self) -> np.ndarray:
+        """(3,) half sizes of the normalised box (the largest is 1)."""
+        return self.half / self.scale
+
+    def to_dict(self) -> dict:
+        return {"centre": self.centre.tolist(), "half": self.half.tolist()}
+
+
+def camera_rays(pose: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """World rays through pixel centres of one camera (OpenGL axes: looks along -z).
+
+    Returns
+    -------
+    origins, directions : (H, W, 3) float64
+        Directions are unit vectors.
+    """
+    j, i = np.meshgrid(np.arange(intrinsics.height) + 0.5, np.arange(intrinsics.width) + 0.5,
+                       indexing="ij")
+    local = np.stack([(i - intrinsics.cx) / intrinsics.fx, -(j - intrinsics.cy) / intrinsics.fy,
+                      -np.ones_like(i)], axis=-1)
+    directions = local @ pose[:3, :3].T
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    return np.broadcast_to(pose[:3, 3], directions.shape).copy(), directions
+
+
+def scene_box(poses: np.ndarray, intrinsics: Intrinsics, alpha: np.ndarray,
+              resolution: int = 64) -> SceneBox:
+    """A box around what the cameras see.
+
+    Starts from the cube around the point nearest to all optical axes, with half
+    size 0.75 x the nearest camera's distance; when the images have transparent
+    pixels, shrinks it to the visual hull carved from them.
+    """
+    axes = -poses[:, :3, 2]
+    eyes = poses[:, :3, 3]
+    projector = np.eye(3) - axes[:, :, None] * axes[:, None, :]  # (N, 3, 3)
+    centre = np.linalg.lstsq(projector.sum(0), np.einsum("nij,nj->i", projector, eyes),
+                             rcond=None)[0]
+    half = 0.75 * np.linalg.norm(eyes - centre, axis=1).min()
+    box = SceneBox(centre, np.full(3, half))
+    if alpha.min() >= CARVE_ALPHA:
+        return box
+    cells = np.argwhere(visual_hull(box, np.full(3, resolution), poses, intrinsics, alpha))
+    if len(cells) == 0:
+        return box
+    cell = 2 * half / resolution
+    lo = centre - half + (cells.min(0) - 1) * cell
+    hi = centre - half + (cells.max(0) + 2) * cell
+    lo, hi = np.maximum(lo, centre - half), np.minimum(hi, centre + half)
+    return SceneBox((lo + hi) / 2, (hi - lo) / 2)
+
+
+def visual_hull(box: SceneBox, resolution: np.ndarray, poses: np.ndarray,
+                intrinsics: Intrinsics, alpha: np.ndarray) -> np.ndarray:
+    """(X, Y, Z) bool: cells of ``box`` that no view shows as transparent.
+
+    A cell is carved when its centre projects inside a view onto a pixel whose
+    alpha, dilated by the cell's footprint in that view, is below ``CARVE_ALPHA``.
+    """
+    axes = [np.linspace(-1, 1, n, endpoint=False) + 1 / n for n in resolution]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    points = box.centre + grid * box.half
+    keep = np.ones(len(points), bool)
+    radius = 0.5 * float(np.linalg.norm(2 * box.half / resolution))  # of a cell's bounding ball
+    for pose, mask in zip(poses, alpha):
+        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        depth = -local[:, 2]
+        ahead = depth > radius
+        safe = np.where(ahead, depth, 1.0)
+        u = intrinsics.cx + intrinsics.fx * local[:, 0] / safe
+        v = intrinsics.cy - intrinsics.fy * local[:, 1] / safe
+        inside = ahead & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+        ui = np.clip(u.astype(np.int64), 0, intrinsics.width - 1)
+        vi = np.clip(v.astype(np.int64), 0, intrinsics.height - 1)
+        footprint = np.ceil(intrinsics.fx * radius / safe).astype(np.int64)  # pixels
+        carved = np.zeros(len(points), bool)
+        for pixels in np.unique(footprint[inside]):
+            dilated = maximum_filter(mask, size=2 * int(pixels) + 1)
+            at = inside & (footprint == pixels)
+            carved[at] = dilated[vi[at], ui[at]] < CARVE_ALPHA
+        keep &= ~carved
+    return keep.reshape(tuple(resolution))
+
+
+def box_intersection(origins: torch.Tensor, directions: torch.Tensor, extent: torch.Tensor):
+    """Entry and exit distances (R,) of rays through the box [-extent, extent]; near = far
+    where a ray misses it."""
+    inverse = 1.0 / torch.where(directions.abs() < 1e-9, torch.full_like(directions, 1e-9),
+                                directions)
+    t0, t1 = (-extent - origins) * inverse, (extent - origins) * inverse
+    near = torch.clamp(torch.minimum(t0, t1).amax(-1), min=0)
+    far = torch.maximum(t0, t1).amin(-1)
+    return near, torch.maximum(far, near)
+
+
+class OccupancyGrid:
+    """Coarse boolean grid over the normalised box: samples in empty cells are never evaluated.
+
+    Starts from the visual hull of the training views; once the field has
+    learned some density, ``update`` keeps the carved cells whose density (an
+    exponential moving maximum over random points in each cell) makes one
+    step through it at least ``OCCUPIED_ALPHA`` opaque, or as opaque as the mean
+    cell while the density is still low everywhere.
+    """
+
+    def __init__(self, extent: torch.Tensor, cells: int, hull: torch.Tensor | None = None):
+        per_unit = (cells / float(torch.prod(2 * extent))) ** (1 / 3)
+        self.extent = extent
+        self.resolution = torch.clamp(torch.round(2 * extent * per_unit), 1).long()
+        shape = tuple(self.resolution.tolist())
+        self.hull = torch.ones(shape, dtype=torch.bool) if hull is None else hull
+        self.occupied = self.hull.clone()
+        self.density = torch.zeros(shape)
+
+    @property
+    def cell(self) -> float:
+        """Largest cell size in normalised units."""
+        return float((2 * self.extent / self.resolution).max())
+
+    def to(self, device) -> OccupancyGrid:
+        for name in ("extent", "resolution", "hull", "occupied", "density"):
+            setattr(self, name, getattr(self, name).to(device))
+        return self
+
+    def lookup(self, x: torch.Tensor) -> torch.Tensor:
+        """(P,) bool: points inside the box and in an occupied cell."""
+        u = torch.floor((x + self.extent) / (2 * self.extent) * self.resolution).long()
+        inside = ((u >= 0) & (u < self.resolution)).all(-1)
+        u = torch.minimum(torch.clamp(u, min=0), self.resolution - 1)
+        return inside & self.occupied[u[:, 0], u[:, 1], u[:, 2]]
+
+    @torch.no_grad()
+    def update(self, field, step: float, generator: torch.Generator, decay: float = 0.95) -> None:
+        cells = torch.nonzero(self.hull)
+        size = 2 * self.extent / self.resolution
+        jitter = torch.rand(cells.shape, generator=generator, device=cells.device)
+        points = -self.extent + (cells + jitter) * size
+        sigma = torch.cat([field.density(chunk)[0] for chunk in points.split(1 << 16)])
+        current = self.density[self.hull]
+        self.density[self.hull] = torch.maximum(current * decay, sigma)
+        alpha = 1 - torch.exp(-self.density * step)
+        threshold = min(OCCUPIED_ALPHA, float(alpha[self.hull].mean()))
+        self.occupied = self.hull & (alpha >= threshold)
+
+    def state_dict(self) -> dict:
+        return {"hull": self.hull, "occupied": self.occupied, "density": self.density}
+
+    def load_state_dict(self, state: dict) -> None:
+        for name in ("hull", "occupied", "density"):
+            setattr(self, name, state[name].to(self.extent.device))
+
+
+def composite(sigma: torch.Tensor, deltas: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample weights T_i alpha_i and transmittances T_i, both (R, S), from densities and
+    step lengths (NeRF eq. 3).
+
+    Examples
+    --------
+    >>> composite(torch.tensor([[0.0, 1e9, 1e9]]), torch.ones(1, 3))[0]
+    tensor([[0., 1., 0.]])
+    """
+    optical = sigma * deltas
+    transmittance = torch.exp(-torch.cumsum(torch.cat(
+        [torch.zeros_like(optical[:, :1]), optical[:, :-1]], dim=1), dim=1))
+    return transmittance * (1 - torch.exp(-optical)), transmittance
+
+
+def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
+                directions: torch.Tensor, n_samples: int | None, step: float | None,
+                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite the field's outputs along rays.
+
+    Samples are spaced ``step`` apart from where a ray enters the box (grids), or
+    ``n_samples`` evenly across the box (MLPs); ``generator`` jitters them
+    (training). Samples in empty cells skip the field; samples of weight below
+    ``TERMINATION`` skip its colour part.
+
+    Parameters
+    ----------
+    origins, directions : (R, 3)
+        Normalised coordinates; unit directions.
+
+    Returns
+    -------
+    values : (R, C)
+        Composited outputs, premultiplied by opacity.
+    acc : (R,)
+        Accumulated opacity.
+    """
+    near, far = box_intersection(origins, directions, occupancy.extent)
+    if step is None:
+        deltas = (far - near) / n_samples  # (R,)
+    else:
+        n_samples = max(1, int(torch.ceil((far - near).max() / step)))
+        deltas = torch.full_like(near, step)
+    offsets = torch.arange(n_samples, device=near.device, dtype=near.dtype)
+    offsets = offsets + (0.5 if generator is None else
+                         torch.rand(len(near), 1, generator=generator, device=near.device))
+    t = near[:, None] + offsets * deltas[:, None]  # (R, S)
+    valid = t < far[:, None]
+    points = origins[:, None] + t[..., None] * directions[:, None]  # (R, S, 3)
+    valid[valid.clone()] = occupancy.lookup(points[valid])
+    ray, sample = torch.nonzero(valid, as_tuple=True)
+
+    sigma_packed, h = field.density(points[ray, sample])
+    sigma = torch.zeros_like(t).index_put((ray, sample), sigma_packed)
+    weights, transmittance = composite(sigma, deltas[:, None].expand_as(t))  # (R, S)
+    packed_weights = weights[ray, sample]
+    keep = transmittance[ray, sample].detach() > TERMINATION
+    values = field.colour(h[keep], directions[ray[keep]])  # (P, C)
+    out = torch.zeros(len(origins), values.shape[-1], device=values.device, dtype=values.dtype)
+    out = out.index_add(0, ray[keep], packed_weights[keep, None] * values)
+    return out, weights.sum(1)

@@ -1,0 +1,210 @@
+"""Weight NeRFs: compositing, the frozen density part, output activations, resume, the CLI."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nerf_stage import trainer as trainer_module  # noqa: E402
+from nerf_stage.cameras import orbit_poses, rig_poses  # noqa: E402
+from nerf_stage.cli import main  # noqa: E402
+from nerf_stage.config import TrainConfig  # noqa: E402
+from nerf_stage.data import load_dataset  # noqa: E402
+from nerf_stage.editing import read_render  # noqa: E402
+from nerf_stage.fields import GridField, MLPField  # noqa: E402
+from nerf_stage.rendering import composite, scene_box, visual_hull  # noqa: E402
+from nerf_stage.trainer import CHECKPOINT, load_run, train  # noqa: E402
+from palette_core.cli.decompose import main as decompose  # noqa: E402
+from palette_core.stack import read_stack  # noqa: E402
+
+from .helpers import expect_error  # noqa: E402
+
+TINY = {"grid_voxels": 12**3, "occupancy_voxels": 6**3, "batch_rays": 64, "mlp_samples": 8,
+        "head_width": 16, "warmup_iters": 1, "occupancy_every": 1, "checkpoint_every": 2}
+
+
+def tiny_config(**changes) -> TrainConfig:
+    return TrainConfig(**(TINY | {"pretrain_iters": 2, "finetune_iters": 2} | changes))
+
+
+@pytest.fixture(scope="module")
+def cornell(tmp_path_factory):
+    """16x16 Cornell box (transport weights, order 2, 15 terms)."""
+    out = tmp_path_factory.mktemp("nerf") / "cb"
+    assert main(["simulate", "cornell-box", str(out), "--resolution", "16", "--spp", "4",
+                 "--views", "4", "1", "2"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def still_life(tmp_path_factory):
+    """16x16 still life with an additive stack decomposed from its training views."""
+    out = tmp_path_factory.mktemp("nerf") / "sl"
+    assert main(["simulate", "still-life", str(out), "--resolution", "16", "--spp", "2",
+                 "--views", "4", "1", "2"]) == 0
+    assert decompose([str(out / "train"), "-k", "4", "-o", str(out / "weights.npz")]) == 0
+    return out
+
+
+def trained(root, config, rundir, **kwargs):
+    dataset = load_dataset(root, config.background)
+    return train(config, dataset, read_stack(root / "weights.npz"), rundir, progress=False,
+                 meta={"dataset": str(root)}, **kwargs)
+
+
+# --- compositing and fields ------------------------------------------------------------------
+
+def test_m_channel_compositing_equals_rgb_compositing_for_one_hot_weights(rng):
+    sigma = torch.as_tensor(rng.uniform(0, 3, (5, 7)))
+    deltas = torch.as_tensor(rng.uniform(0.05, 0.3, (5, 7)))
+    palette = torch.as_tensor(rng.uniform(0, 1, (4, 3)))
+    one_hot = torch.nn.functional.one_hot(torch.as_tensor(rng.integers(0, 4, (5, 7))), 4)
+    weights, _ = composite(sigma, deltas)
+    composited_weights = (weights[..., None] * one_hot).sum(1)
+    composited_rgb = (weights[..., None] * (one_hot.double() @ palette)).sum(1)
+    assert torch.allclose(composited_weights.double() @ palette, composited_rgb)
+    assert torch.all(weights.sum(1) <= 1)
+
+
+@pytest.mark.parametrize("kind", ["additive", "transport"])
+@pytest.mark.parametrize("make", [lambda k, c: MLPField(16, k, c),
+                                  lambda k, c: GridField([1, 1, 0.5], 6**3, 4, 16, k, c)])
+def test_output_activations(make, kind, rng):
+    field = make(kind, 6)
+    x = torch.as_tensor(rng.uniform(-1, 1, (50, 3)), dtype=torch.float32)
+    d = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    sigma, h = field.density(x)
+    values = field.colour(h, d)
+    assert values.shape == (50, 6) and torch.all(values >= 0) and torch.all(sigma >= 0)
+    if kind == "additive":
+        assert torch.allclose(values.sum(-1), torch.ones(50), atol=1e-6)
+
+
+def test_visual_hull_keeps_the_objects(still_life):
+    data = load_dataset(still_life)
+    train_ids = data.indices("train")
+    box = scene_box(data.poses[train_ids], data.intrinsics, data.alpha[train_ids])
+    hull = visual_hull(box, np.array([16, 16, 16]), data.poses[train_ids], data.intrinsics,
+                       data.alpha[train_ids])
+    for centre in ([0.7, 0.5, -0.4], [-0.7, 0.4, -0.5], [1.1, 0.25, 0.7]):  # globe, box, ball
+        cell = np.floor((np.array(centre) - box.centre + box.half) / (2 * box.half) * 16)
+        assert hull[tuple(cell.astype(int))]
+    assert 0 < hull.mean() < 1
+
+
+def test_orbit_sweeps_the_front_arc_and_looks_at_the_centre():
+    poses = rig_poses("front-arc", 10, [0, 1, 0], 4.0, (0, 10), 60)
+    orbit = orbit_poses(poses, 12, [0, 1, 0])
+    eyes = orbit[:, :3, 3] - [0, 1, 0]
+    azimuth = np.degrees(np.arctan2(eyes[:, 0], eyes[:, 2]))
+    assert azimuth.min() >= -27.5 and azimuth.max() <= 27.5 and np.ptp(azimuth) > 50
+    assert np.allclose(np.linalg.norm(eyes, axis=1), 4.0)
+    assert np.allclose(np.einsum("ni,ni->n", -orbit[:, :3, 2], -eyes / 4.0), 1)
+
+
+# --- training --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("backbone", ["grid", "mlp"])
+def test_fine_tuning_leaves_the_density_part_bit_identical(cornell, tmp_path, backbone):
+    two_stage = trained(cornell, tiny_config(backbone=backbone), tmp_path / "a")
+    pretrained = trained(cornell, tiny_config(backbone=backbone, strategy="rgb",
+                                              pretrain_iters=2, finetune_iters=0), tmp_path / "b")
+    for after, before in zip(two_stage.field.density_parameters(),
+                             pretrained.field.density_parameters()):
+        assert torch.equal(after, before)
+    assert not torch.equal(two_stage.field.colour_parameters()[0],
+                           pretrained.field.colour_parameters()[0])
+    assert two_stage.field.kind == "transport" and two_stage.field.output.out_features == 15
+
+
+def test_additive_renders_sum_to_the_opacity(still_life, tmp_path):
+    run = trained(still_life, tiny_config(strategy="traditional"), tmp_path / "run")
+    data = load_dataset(still_life)
+    weights, opacity = run.render(data.poses[data.indices("test")])
+    assert weights.shape == (2, 16, 16, 4) and np.all(weights >= 0)
+    assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
+
+
+def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch):
+    config = tiny_config(pretrain_iters=3, finetune_iters=3)
+    whole = trained(cornell, config, tmp_path / "whole")
+    save = trainer_module._save_checkpoint
+
+    def save_then_stop(run, path, optimisers, generator, iteration, log):
+        save(run, path, optimisers, generator, iteration, log)
+        if iteration == 4:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(trainer_module, "_save_checkpoint", save_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        trained(cornell, config, tmp_path / "resumed")
+    monkeypatch.setattr(trainer_module, "_save_checkpoint", save)
+    resumed = trained(cornell, config, tmp_path / "resumed", resume=True)
+    for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()):
+        assert torch.equal(a, b)
+    assert [e["loss"] for e in whole.meta["log"]] == [e["loss"] for e in resumed.meta["log"]]
+
+
+# --- command line ----------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def cornell_run(cornell, tmp_path_factory):
+    rundir = tmp_path_factory.mktemp("runs") / "cb"
+    args = ["train", str(cornell), "--weights", str(cornell / "weights.npz"), "-o", str(rundir),
+            "--pretrain-iters", "2", "--finetune-iters", "2", "--batch-rays", "64",
+            "--grid-voxels", str(12**3), "--head-width", "16"]
+    assert main(args) == 0
+    return rundir, args
+
+
+def test_train_render_recolour_eval(cornell_run, tmp_path, capsys):
+    rundir, _ = cornell_run
+    palette = tmp_path / "edit.json"
+    palette.write_text(json.dumps({"palette": [[0.1, 0.2, 0.9]] * 4}))
+    out = tmp_path / "renders"
+    assert main(["render", str(rundir), "-o", str(out)]) == 0
+    saved = read_render(out / "render.npz")
+    assert saved.weights.shape == (2, 16, 16, 15)
+    capsys.readouterr()
+    assert main(["render", str(rundir), "--palette", str(palette), "--harmonize", "triad",
+                 "-o", str(out)]) == 0
+    assert "does not run" in capsys.readouterr().out
+    for label in ("original", "edit", "harmonized-triad"):
+        assert sorted(p.name for p in (out / label).iterdir()) == [
+            "palette.png", "r_000.png", "r_001.png"]
+    expect_error(main, ["render", str(rundir), "--palette", str(palette), "-o", str(out)],
+                 "edit already exists", capsys)
+    expect_error(main, ["render", str(rundir), "--orbit", "2", "-o", str(out)],
+                 "holds another render", capsys)
+    assert main(["render", str(rundir), "--orbit", "3", "-o", str(tmp_path / "orbit")]) == 0
+    assert (tmp_path / "orbit" / "original.gif").stat().st_size > 0
+    assert main(["eval", str(rundir)]) == 0
+    printed = capsys.readouterr().out
+    assert "RGB through the weights: PSNR" in printed and "re-simulated scene: PSNR" in printed
+
+
+def test_cli_errors(cornell, cornell_run, still_life, tmp_path, capsys):
+    rundir, train_args = cornell_run
+    expect_error(main, ["render", str(tmp_path), "-o", str(tmp_path / "x")],
+                 "holds no checkpoint", capsys)
+    wrong = tmp_path / "wrong.json"
+    wrong.write_text(json.dumps({"palette": [[0.1, 0.2, 0.9]] * 3}))
+    expect_error(main, ["render", str(rundir), "--palette", str(wrong), "-o", str(tmp_path / "x")],
+                 "has 3 colours, expected 4", capsys)
+    partial = tmp_path / "partial.npz"  # weights of two views only
+    assert decompose([str(still_life / "test"), "-k", "4", "-o", str(partial)]) == 0
+    expect_error(main, ["train", str(cornell), "--weights", str(partial), "-o",
+                        str(tmp_path / "r")], "train frames without weights", capsys)
+    expect_error(main, ["train", str(cornell), "--weights", str(cornell / "weights.npz"),
+                        "--backbone", "octree"], "invalid choice: 'octree'", capsys)
+    expect_error(main, train_args, "already holds a run", capsys)
+    expect_error(main, ["train", str(cornell), "--weights", str(cornell / "weights.npz"),
+                        "-o", str(tmp_path / "new"), "--resume"], "holds no checkpoint", capsys)
+    copy = tmp_path / "copy"
+    shutil.copytree(rundir, copy)
+    expect_error(main, train_args[:5] + [str(copy), "--resume"], "another config", capsys)
+    assert not (tmp_path / "x").exists()
+    assert load_run(rundir).meta["iteration"] == 4 and (rundir / CHECKPOINT).is_file()
