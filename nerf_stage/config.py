@@ -36,6 +36,8 @@ class TrainConfig:
     """Voxels of the density and feature grids (``grid``), spread over the scene box."""
     grid_features: int = 12
     """Feature channels per voxel of the colour grid (``grid``)."""
+    grid_view_frequencies: int | None = None
+    """Frequencies of the view direction's encoding in the ``grid`` head; None: diffuse."""
     head_width: int = 128
     """Width of the last hidden layer (the paper's 128/256/512 ablation for ``mlp``)."""
     step_voxels: float = 1.0
@@ -49,6 +51,9 @@ class TrainConfig:
     """Iterations between occupancy updates (``grid``)."""
     warmup_iters: int = 32
     """Iterations before occupancy is refined from the learned density (``grid``)."""
+    opacity_weight: float = 0.1
+    """Weight of the L2 loss between the accumulated opacity and the images' alpha, while the
+    density trains: it clears fog from space that few rays constrain."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour behind the scene, RGB in [0, 1]."""
     seed: int = 0
@@ -75,8 +80,9 @@ class TrainConfig:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
         if self.strategy == "two-stage" and self.finetune_iters == 0:
             raise InputError("the two-stage strategy needs finetune_iters > 0")
-        if not (self.step_voxels > 0 and self.lr >= 0 and self.grid_lr > 0):
-            raise InputError("step_voxels and grid_lr must be > 0 and lr >= 0")
+        if not (self.step_voxels > 0 and self.grid_lr > 0 and self.lr >= 0
+                and self.opacity_weight >= 0):
+            raise InputError("step_voxels and grid_lr must be > 0, lr and opacity_weight >= 0")
         if len(self.background) != 3 or not all(0 <= c <= 1 for c in self.background):
             raise InputError(f"background must be three numbers in [0, 1], got {self.background}")
 

@@ -130,6 +130,9 @@ class GridField(Field):
         Half sizes of the normalised scene box (the largest is 1).
     voxels : int
         About this many voxels, cubic, spread over the box.
+    direction_frequencies : int or None
+        Positional encoding of the view direction fed to the head; None for a
+        view-independent (diffuse) colour, which generalises better from few pixels.
 
     Examples
     --------
@@ -141,8 +144,8 @@ class GridField(Field):
     True
     """
 
-    def __init__(self, extent, voxels: int = 160**3, features: int = 12, head_width: int = 128,
-                 kind: str = "rgb", channels: int = 3, direction_frequencies: int = 2):
+    def __init__(self, extent, voxels: int = 128**3, features: int = 12, head_width: int = 128,
+                 kind: str = "rgb", channels: int = 3, direction_frequencies: int | None = None):
         super().__init__()
         extent = torch.as_tensor(extent, dtype=torch.float32)
         per_unit = (voxels / float(torch.prod(2 * extent))) ** (1 / 3)
@@ -159,7 +162,8 @@ class GridField(Field):
         self.feature_grid = nn.Embedding(n, features, sparse=True)
         nn.init.zeros_(self.density_grid.weight)
         nn.init.zeros_(self.feature_grid.weight)
-        self.hidden = nn.Linear(features + 3 * (1 + 2 * direction_frequencies), head_width)
+        n_direction = 0 if direction_frequencies is None else 3 * (1 + 2 * direction_frequencies)
+        self.hidden = nn.Linear(features + n_direction, head_width)
         self._init_output(kind, channels)
 
     def _corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -185,8 +189,10 @@ class GridField(Field):
 
     def colour(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         features = self._interpolate(self.feature_grid, *self._corners(h))
-        hidden = torch.relu(self.hidden(torch.cat(
-            [features, positional_encoding(d, self.direction_frequencies)], dim=-1)))
+        if self.direction_frequencies is not None:
+            features = torch.cat([features, positional_encoding(d, self.direction_frequencies)],
+                                 dim=-1)
+        hidden = torch.relu(self.hidden(features))
         return self.activate(self.output(hidden))
 
     def density_parameters(self) -> list[nn.Parameter]:
@@ -205,7 +211,7 @@ def make_field(config, extent, kind: str, channels: int) -> Field:
     if config.backbone == "mlp":
         return MLPField(config.head_width, kind, channels)
     return GridField(extent, config.grid_voxels, config.grid_features, config.head_width,
-                     kind, channels)
+                     kind, channels, config.grid_view_frequencies)
 
 
 def grid_step(field: Field) -> float | None:

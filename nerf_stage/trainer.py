@@ -197,6 +197,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         else:
             loss = torch.mean((values - rays["weights"][batch]) ** 2)
             rgb = values @ terms + (1 - acc[:, None]) * background
+        if acc.requires_grad and config.opacity_weight > 0:
+            loss = loss + config.opacity_weight * torch.mean((acc - rays["alpha"][batch]) ** 2)
         for optimiser in optimisers:
             optimiser.zero_grad(set_to_none=True)
         loss.backward()
@@ -239,7 +241,8 @@ def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
         return torch.as_tensor(a.reshape(-1, a.shape[-1]), dtype=torch.float32, device=device)
 
     return {"origins": torch.cat(origins), "directions": torch.cat(directions),
-            "rgb": flat(dataset.images[train_ids]), "weights": flat(weights)}
+            "rgb": flat(dataset.images[train_ids]), "weights": flat(weights),
+            "alpha": flat(dataset.alpha[train_ids, ..., None])[:, 0]}
 
 
 def _start_finetune(run: Run) -> None:

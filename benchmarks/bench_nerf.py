@@ -1,0 +1,190 @@
+"""Weight NeRFs on the simulated scenes: what accuracy costs in time (PaletteNeRF's tables).
+
+Each scene is simulated once (``nerf-stage simulate``); ``still-life`` gets additive
+weights from ``palette-decompose -k 6`` on its training views, ``cornell-box`` its
+order-2 transport weights. Then, on the test views:
+
+1. RGB NeRF against the weight NeRF (RGB through the weights), per scene, at the
+   same number of iterations (PSNR, SSIM, training time).
+2. ``two-stage`` against ``traditional`` at an equal iteration budget.
+3. The last-layer width 128 / 256 / 512 (``two-stage``, ``still-life``).
+4. ``grid`` against ``mlp``: seconds per iteration and per rendered frame, and PSNR
+   with the ``mlp`` given the ``grid``'s training time.
+5. Cornell box: the weight render recoloured with an edited palette against the
+   scene re-simulated with it, and recolouring against rendering time.
+6. PSNR against training time: the training batches' PSNR over the seconds of
+   each run, with the test PSNR at the end (figure ``nerf_psnr_time.png``).
+
+    python benchmarks/bench_nerf.py [--out benchmarks/out/nerf] [--iters P F] [--quick]
+
+Runs are cached in OUT/runs: a finished run with the same config is evaluated again,
+not retrained.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_simulate import EDITED
+
+from nerf_stage.cli import main as nerf_stage
+from nerf_stage.config import TrainConfig
+from nerf_stage.data import load_dataset
+from nerf_stage.editing import evaluate
+from nerf_stage.trainer import CHECKPOINT, CONFIG, load_run, train
+from palette_core.cli.decompose import main as decompose
+from palette_core.stack import read_stack
+
+SCENES = ("still-life", "cornell-box")
+
+
+def prepare(scene: str, data: Path) -> tuple[Path, Path]:
+    """Simulate ``scene`` (once) and return its dataset folder and weight stack."""
+    root = data / scene
+    if not (root / "transforms_test.json").is_file():
+        assert nerf_stage(["simulate", scene, str(root), "--force"]) == 0
+    if scene == "cornell-box":
+        return root, root / "weights.npz"
+    stack = data / f"{scene}-k6.npz"
+    if not stack.is_file():
+        assert decompose([str(root / "train"), "-k", "6", "-o", str(stack)]) == 0
+    return root, stack
+
+
+def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: Path):
+    """Train (or reuse) one run and evaluate it; returns its scores and log."""
+    rundir = runs / name
+    done = (rundir / CHECKPOINT).is_file() and (rundir / CONFIG).is_file() and \
+        TrainConfig.load(rundir / CONFIG) == config
+    dataset = load_dataset(root, config.background)
+    if done and load_run(rundir, "cpu").meta["iteration"] == config.total_iters:
+        run = load_run(rundir)
+    else:
+        run = train(config, dataset, read_stack(stack), rundir, resume=done,
+                    meta={"dataset": str(root.resolve())})
+    log = run.meta["log"]
+    edit = EDITED if run.basis == "transport" else None
+    scores = evaluate(run, dataset, edit, progress=False)
+    scores.update(name=name, seconds=log[-1]["seconds"], iterations=len(log),
+                  seconds_per_iter=log[-1]["seconds"] / len(log))
+    scores["curve"] = [(e["seconds"], e["psnr"]) for e in log]
+    print(f"  {name}: PSNR {scores['reconstruction']['psnr']:.2f} dB in {scores['seconds']:.0f} s",
+          flush=True)
+    return scores
+
+
+def table(title: str, header: list[str], rows: list[list]) -> None:
+    print(f"\n### {title}\n")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for row in rows:
+        print("| " + " | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row)
+              + " |")
+
+
+def rec(s: dict) -> tuple[float, float]:
+    return s["reconstruction"]["psnr"], s["reconstruction"]["ssim"]
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4), squeeze=False)
+    for ax, (scene, runs) in zip(axes[0], results.items()):
+        for s in runs.values():
+            seconds, psnr = np.array(s["curve"]).T
+            window = max(1, len(psnr) // 50)
+            smooth = np.convolve(psnr, np.ones(window) / window, mode="valid")
+            line, = ax.plot(seconds[window - 1:], smooth, label=s["name"], lw=1)
+            ax.plot(seconds[-1], rec(s)[0], "o", color=line.get_color())
+        ax.set(title=f"{scene}: training-batch PSNR (line), test PSNR (dot)",
+               xlabel="training seconds", ylabel="PSNR (dB)")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"\nwrote {path}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/out/nerf"))
+    parser.add_argument("--iters", type=int, nargs=2, default=None, metavar=("P", "F"),
+                        help="pretrain and fine-tune iterations (default: TrainConfig's)")
+    parser.add_argument("--quick", action="store_true", help="a few iterations, to check")
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    args = parser.parse_args()
+    p, f = args.iters or ((40, 20) if args.quick else (TrainConfig.pretrain_iters,
+                                                        TrainConfig.finetune_iters))
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    print(f"device: {device} ({torch.cuda.get_device_name() if device == 'cuda' else 'CPU'}, "
+          f"{torch.get_num_threads()} threads); P = {p}, F = {f}")
+    base = TrainConfig(pretrain_iters=p, finetune_iters=f)
+    results: dict[str, dict] = {}
+    for scene in args.scenes:
+        print(f"\n{scene}:", flush=True)
+        root, stack = prepare(scene, args.out / "data")
+        runs = args.out / "runs" / scene
+        configs = {
+            "rgb": replace(base, strategy="rgb"),
+            "two-stage": base,
+            "traditional": replace(base, strategy="traditional"),
+        }
+        if scene == "still-life":
+            configs |= {f"two-stage w{w}": replace(base, head_width=w) for w in (256, 512)}
+        results[scene] = {name: trained_run(name, c, root, stack, runs)
+                          for name, c in configs.items()}
+        if scene == "still-life":  # the mlp gets the grid's training time
+            probe = trained_run("mlp probe", replace(base, backbone="mlp", pretrain_iters=10,
+                                                     finetune_iters=5), root, stack, runs)
+            budget = results[scene]["two-stage"]["seconds"]
+            total = max(3, int(budget / probe["seconds_per_iter"]))
+            mlp = replace(base, backbone="mlp", pretrain_iters=total * p // (p + f),
+                          finetune_iters=total - total * p // (p + f))
+            results[scene]["mlp two-stage"] = trained_run("mlp two-stage", mlp, root, stack, runs)
+
+    for scene, runs in results.items():
+        table(f"{scene}: RGB NeRF against the weight NeRF, two-stage against traditional "
+              f"({p + f} iterations each)",
+              ["run", "test PSNR (dB)", "test SSIM", "training s", "s / iteration"],
+              [[s["name"], *rec(s), s["seconds"], s["seconds_per_iter"]]
+               for s in runs.values() if s["name"] in ("rgb", "two-stage", "traditional")])
+    if "still-life" in results:
+        runs = results["still-life"]
+        table("still-life: last-layer width (two-stage)", ["width", "test PSNR", "test SSIM",
+                                                          "s / frame"],
+              [[w, *rec(runs[n]), runs[n]["seconds_per_view"]] for w, n in
+               ((128, "two-stage"), (256, "two-stage w256"), (512, "two-stage w512"))])
+        table("still-life: grid against mlp at equal training time",
+              ["backbone", "iterations", "training s", "s / iteration", "s / frame",
+               "test PSNR"],
+              [[n.split()[0] if n != "two-stage" else "grid", runs[n]["iterations"],
+                runs[n]["seconds"], runs[n]["seconds_per_iter"], runs[n]["seconds_per_view"],
+                rec(runs[n])[0]] for n in ("two-stage", "mlp two-stage")])
+    if "cornell-box" in results:
+        s = results["cornell-box"]["two-stage"]
+        table("cornell-box: edited palette against the re-simulated edit, recolouring speed",
+              ["edit PSNR", "edit SSIM", "render s / frame", "recolour s / frame", "speed-up"],
+              [[s["edit"]["psnr"], s["edit"]["ssim"], s["seconds_per_view"],
+                s["recolour_seconds_per_view"],
+                f"{s['seconds_per_view'] / s['recolour_seconds_per_view']:.0f}x"]])
+    args.out.mkdir(parents=True, exist_ok=True)
+    plot(results, args.out / "nerf_psnr_time.png")
+    (args.out / "results.json").write_text(json.dumps(
+        {sc: {n: {k: v for k, v in s.items() if k != "curve"} for n, s in r.items()}
+         for sc, r in results.items()}, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    start = time.perf_counter()
+    main()
+    print(f"total {time.perf_counter() - start:.0f} s")
