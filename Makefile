@@ -3,8 +3,6 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO_OUT ?= demo_out
-DEMO_PRETRAIN ?= 400
-DEMO_FINETUNE ?= 200
 
 .PHONY: demo test bench lint clean
 
@@ -15,7 +13,7 @@ $(BIN)/.installed: setup.cfg pyproject.toml
 	touch $@
 
 NERF := $(DEMO_OUT)/nerf
-# About 12 minutes on 2 CPU cores: photos, then a simulated scene through a weight NeRF.
+# About 15 minutes on 2 CPU cores: photos, then a simulated scene through a weight NeRF.
 demo: $(BIN)/.installed
 	$(BIN)/palette-decompose examples/photos -k 6 -o $(DEMO_OUT)/weights.npz --layers $(DEMO_OUT)/layers --force
 	$(BIN)/python examples/edit_palette.py $(DEMO_OUT)/palette.json -o $(DEMO_OUT)/edited_palette.json --force
@@ -24,7 +22,7 @@ demo: $(BIN)/.installed
 	$(BIN)/nerf-stage simulate still-life $(NERF)/still-life --force
 	$(BIN)/palette-decompose $(NERF)/still-life/train -k 6 -o $(NERF)/weights.npz --force
 	$(BIN)/palette-harmonize $(NERF)/weights.npz --template best -o $(NERF)/harmonized.npz --render $(NERF)/harmonized --force
-	$(BIN)/nerf-stage train $(NERF)/still-life --weights $(NERF)/weights.npz -o $(NERF)/run --pretrain-iters $(DEMO_PRETRAIN) --finetune-iters $(DEMO_FINETUNE) --force
+	$(BIN)/nerf-stage train $(NERF)/still-life --weights $(NERF)/weights.npz -o $(NERF)/run --force
 	$(BIN)/python examples/edit_palette.py $(NERF)/palette.json -o $(NERF)/recolored.json --force
 	$(BIN)/nerf-stage render $(NERF)/run --orbit 36 --palette $(NERF)/recolored.json --harmonize best -o $(NERF)/turntable --force
 	$(BIN)/nerf-stage eval $(NERF)/run

@@ -21,10 +21,10 @@ class TrainConfig:
     strategy: str = "two-stage"
     """``two-stage`` (RGB pretrain, then weights), ``traditional`` (weights from scratch),
     or ``rgb`` (an RGB NeRF only, the baseline)."""
-    pretrain_iters: int = 3000
+    pretrain_iters: int = 800
     """P: RGB iterations of ``two-stage`` (``traditional`` and ``rgb`` train P + F on one
     target)."""
-    finetune_iters: int = 1500
+    finetune_iters: int = 300
     """F: weight iterations of ``two-stage`` with the density part frozen."""
     batch_rays: int = 4096
     """Rays per iteration."""
@@ -32,7 +32,7 @@ class TrainConfig:
     """Adam learning rate of the networks; 0 picks the backbone's (grid 1e-3, mlp 5e-4)."""
     grid_lr: float = 0.1
     """Learning rate of the voxel grids (``grid`` only)."""
-    grid_voxels: int = 128**3
+    grid_voxels: int = 96**3
     """Voxels of the density and feature grids (``grid``), spread over the scene box."""
     grid_features: int = 12
     """Feature channels per voxel of the colour grid (``grid``)."""
@@ -49,7 +49,7 @@ class TrainConfig:
     training views; the ``grid`` backbone refines it from its density)."""
     occupancy_every: int = 16
     """Iterations between occupancy updates (``grid``)."""
-    warmup_iters: int = 32
+    warmup_iters: int = 64
     """Iterations before occupancy is refined from the learned density (``grid``)."""
     opacity_weight: float = 0.1
     """Weight of the L2 loss between the accumulated opacity and the images' alpha, while the

@@ -33,7 +33,7 @@ OUTPUTS = {
     "additive": lambda raw: torch.softmax(raw, dim=-1),
     "transport": lambda raw: nn.functional.softplus(raw),
 }
-GRID_DENSITY_SHIFT = -4.0  # softplus(-4) ~ 0.02 per voxel: the grid starts almost empty
+GRID_DENSITY_SHIFT = -4.0  # softplus(-4) ~ 0.02 per voxel: below the occupancy threshold
 
 
 def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
@@ -144,7 +144,7 @@ class GridField(Field):
     True
     """
 
-    def __init__(self, extent, voxels: int = 128**3, features: int = 12, head_width: int = 128,
+    def __init__(self, extent, voxels: int = 96**3, features: int = 12, head_width: int = 128,
                  kind: str = "rgb", channels: int = 3, direction_frequencies: int | None = None):
         super().__init__()
         extent = torch.as_tensor(extent, dtype=torch.float32)

@@ -25,7 +25,7 @@ from .data import Intrinsics
 
 TERMINATION = 1e-4  # samples behind less transmittance skip the colour part
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
-OCCUPIED_ALPHA = 0.01  # a cell is occupied when one step through it is this opaque
+OCCUPIED_ALPHA = 0.03  # a cell is occupied when one step through it is this opaque
 
 
 @dataclass
