@@ -214,10 +214,4 @@ def make_field(config, extent, kind: str, channels: int) -> Field:
                      kind, channels, config.grid_view_frequencies)
 
 
-def grid_step(field: Field) -> float | None:
-    """Ray-marching step of a grid field in normalised units (one voxel), None for MLPs."""
-    return 1.0 / field.voxels_per_unit if isinstance(field, GridField) else None
-
-
-__all__ = ["OUTPUTS", "Field", "GridField", "MLPField", "make_field", "positional_encoding",
-           "grid_step"]
+__all__ = ["OUTPUTS", "Field", "GridField", "MLPField", "make_field", "positional_encoding"]
