@@ -18,7 +18,7 @@ from PIL import Image
 from skimage.metrics import structural_similarity
 
 from palette_core.errors import InputError
-from palette_core.recolor import transport_basis
+from palette_core.recolor import weights_to_rgb
 from palette_core.stack import WeightStack
 
 from .cameras import orbit_poses
@@ -61,8 +61,8 @@ class WeightRender:
         if palette.shape != self.palette.shape:
             raise InputError(f"palette must have shape {self.palette.shape} like the run's, "
                              f"got {palette.shape}")
-        terms = palette if self.basis == "additive" else transport_basis(palette, self.order)
-        rgb = self.weights @ terms + (1 - self.opacity[..., None]) * self.background
+        rgb = (weights_to_rgb(self.weights, palette, self.basis, self.order)
+               + (1 - self.opacity[..., None]) * self.background)
         return np.clip(rgb, 0, 1)
 
     def as_stack(self) -> WeightStack:

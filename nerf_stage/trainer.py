@@ -189,24 +189,13 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         batch = torch.randint(len(rays["origins"]), (config.batch_rays,), generator=generator,
                               device=device)
         run.field.train()
-        values, acc = run.render_rays(rays["origins"][batch], rays["directions"][batch],
-                                      generator)
-        if run.field.kind == "rgb":
-            rgb = values + (1 - acc[:, None]) * background
-            loss = torch.mean((rgb - rays["rgb"][batch]) ** 2)
-        else:
-            loss = torch.mean((values - rays["weights"][batch]) ** 2)
-            rgb = values @ terms + (1 - acc[:, None]) * background
-        if acc.requires_grad and config.opacity_weight > 0:
-            loss = loss + config.opacity_weight * torch.mean((acc - rays["alpha"][batch]) ** 2)
+        loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
+                           background, generator)
         for optimiser in optimisers:
             optimiser.zero_grad(set_to_none=True)
         loss.backward()
         for optimiser in optimisers:
             optimiser.step()
-        with torch.no_grad():
-            mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"][batch]) ** 2))
-        psnr = -10 * math.log10(max(mse, 1e-10))
         log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
                     "loss": loss.item(), "psnr": psnr, "stage": run.field.kind})
         bar.set_postfix(stage=run.field.kind, loss=f"{loss.item():.2e}", psnr=f"{psnr:.2f}")
@@ -214,6 +203,26 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             _save_checkpoint(run, rundir / CHECKPOINT, optimisers, generator, it + 1, log)
     run.meta["log"] = log
     return run
+
+
+def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Tensor, float]:
+    """Loss of one batch of rays, and the PSNR of its colours (through the weights).
+
+    L2 on RGB while the output is RGB, else on the premultiplied weights; plus,
+    while the density trains, ``opacity_weight`` x L2 of the opacity against alpha.
+    """
+    values, acc = run.render_rays(rays["origins"], rays["directions"], generator)
+    if run.field.kind == "rgb":
+        rgb = values + (1 - acc[:, None]) * background
+        loss = torch.mean((rgb - rays["rgb"]) ** 2)
+    else:
+        loss = torch.mean((values - rays["weights"]) ** 2)
+        rgb = values @ terms + (1 - acc[:, None]) * background
+    if acc.requires_grad:
+        loss = loss + run.config.opacity_weight * torch.mean((acc - rays["alpha"]) ** 2)
+    with torch.no_grad():
+        mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"]) ** 2))
+    return loss, -10 * math.log10(max(mse, 1e-10))
 
 
 def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
