@@ -152,14 +152,21 @@ class OccupancyGrid:
     cell while the density is still low everywhere.
     """
 
-    def __init__(self, extent: torch.Tensor, cells: int, hull: torch.Tensor | None = None):
+    def __init__(self, extent: torch.Tensor, cells: int):
         per_unit = (cells / float(torch.prod(2 * extent))) ** (1 / 3)
         self.extent = extent
         self.resolution = torch.clamp(torch.round(2 * extent * per_unit), 1).long()
         shape = tuple(self.resolution.tolist())
-        self.hull = torch.ones(shape, dtype=torch.bool) if hull is None else hull
+        self.hull = torch.ones(shape, dtype=torch.bool)
         self.occupied = self.hull.clone()
         self.density = torch.zeros(shape)
+
+    def carve(self, box: SceneBox, poses: np.ndarray, intrinsics: Intrinsics,
+              alpha: np.ndarray) -> None:
+        """Start from the visual hull of views (``visual_hull``) at this grid's resolution."""
+        self.hull = torch.as_tensor(visual_hull(box, self.resolution.cpu().numpy(), poses,
+                                                intrinsics, alpha), device=self.extent.device)
+        self.occupied = self.hull.clone()
 
     @property
     def cell(self) -> float:

@@ -31,13 +31,13 @@ import torch
 from tqdm import tqdm
 
 from palette_core.errors import InputError
-from palette_core.recolor import transport_basis
-from palette_core.stack import WeightStack
+from palette_core.recolor import basis_terms
+from palette_core.stack import WeightStack, n_terms
 
 from .config import TrainConfig
 from .data import Dataset, Intrinsics, join_weights
 from .fields import Field, make_field
-from .rendering import OccupancyGrid, SceneBox, camera_rays, render_rays, scene_box, visual_hull
+from .rendering import OccupancyGrid, SceneBox, camera_rays, render_rays, scene_box
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -80,8 +80,7 @@ class Run:
     @property
     def terms(self) -> np.ndarray:
         """(M, 3) colour of each weight channel for the run's palette."""
-        return self.palette if self.basis == "additive" else transport_basis(self.palette,
-                                                                            self.order)
+        return basis_terms(self.palette, self.basis, self.order)
 
     @property
     def step(self) -> float | None:
@@ -226,17 +225,13 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
 
 
 def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
-    k = len(stack.palette)
-    channels = k if stack.basis == "additive" else math.comb(k + stack.order, stack.order)
+    channels = n_terms(len(stack.palette), stack.basis, stack.order)
     kind = "rgb" if config.strategy != "traditional" else stack.basis
     torch.manual_seed(config.seed)
     extent = torch.as_tensor(box.extent, dtype=torch.float32)
     field = make_field(config, extent, kind, 3 if kind == "rgb" else channels).to(device)
     occupancy = OccupancyGrid(extent, config.occupancy_voxels)
-    occupancy.hull = torch.as_tensor(visual_hull(
-        box, occupancy.resolution.numpy(), dataset.poses[train_ids], dataset.intrinsics,
-        dataset.alpha[train_ids]))
-    occupancy.occupied = occupancy.hull.clone()
+    occupancy.carve(box, dataset.poses[train_ids], dataset.intrinsics, dataset.alpha[train_ids])
     meta = {"channels": channels, "stack_meta": stack.meta}
     return Run(config, field, occupancy.to(device), box, dataset.intrinsics,
                np.asarray(stack.palette, np.float64), stack.basis, stack.order, meta)

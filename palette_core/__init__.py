@@ -12,7 +12,13 @@ from .hull import extract_palette, simplification_levels
 from .io import ColourSet, LoadedImage, find_images, load_image
 from .mvc import rgb_to_mvc_weights
 from .polytope import Polytope, polytope_from_points, polytope_rmse, project_to_polytope
-from .recolor import read_palette_json, transport_basis, weights_to_rgb, write_palette_json
+from .recolor import (
+    basis_terms,
+    read_palette_json,
+    transport_basis,
+    weights_to_rgb,
+    write_palette_json,
+)
 from .stack import WeightStack, read_stack, write_stack
 
 __version__ = "0.1.0"
@@ -23,6 +29,7 @@ __all__ = [
     "LoadedImage",
     "Polytope",
     "WeightStack",
+    "basis_terms",
     "decompose",
     "extract_palette",
     "find_images",

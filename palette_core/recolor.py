@@ -53,6 +53,12 @@ def transport_basis(palette: np.ndarray, order: int) -> np.ndarray:
     return np.array(terms)
 
 
+def basis_terms(palette: np.ndarray, basis: str = "additive", order: int = 1) -> np.ndarray:
+    """(M, 3) colour of each weight channel: the palette itself, or its transport terms."""
+    palette = np.asarray(palette, np.float64)
+    return palette if basis == "additive" else transport_basis(palette, order)
+
+
 def weights_to_rgb(
     weights: np.ndarray, palette: np.ndarray, basis: str = "additive", order: int = 1
 ) -> np.ndarray:
@@ -71,8 +77,7 @@ def weights_to_rgb(
     (..., 3) float64
         Colours, not clipped.
     """
-    palette = np.asarray(palette, np.float64)
-    terms = palette if basis == "additive" else transport_basis(palette, order)
+    terms = basis_terms(palette, basis, order)
     if weights.shape[-1] != len(terms):
         raise InputError(f"weights have {weights.shape[-1]} channels, the palette gives "
                          f"{len(terms)} {basis} terms")
