@@ -57,8 +57,17 @@ class Field(nn.Module):
         self._init_output(kind, channels)
         self.output.to(device)
 
-    def activate(self, raw: torch.Tensor) -> torch.Tensor:
-        return OUTPUTS[self.kind](raw)
+    def colour(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """(P, C) outputs at the density part's ``h`` seen from unit directions ``d``."""
+        return self.colour_output(self.head(h, d))
+
+    def colour_output(self, features: torch.Tensor) -> torch.Tensor:
+        """The output layer and its activation on (P, head_width) ``head`` features."""
+        return OUTPUTS[self.kind](self.output(features))
+
+    def head(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """(P, head_width) last hidden layer of the colour part, the output layer's input."""
+        raise NotImplementedError
 
     def extra_state_dict(self) -> dict:
         return {"kind": self.kind, "channels": self.output.out_features}
@@ -102,10 +111,9 @@ class MLPField(Field):
             h = torch.relu(layer(h))
         return nn.functional.softplus(self.sigma(h)[:, 0]), self.feature(h)
 
-    def colour(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        h = torch.relu(self.view(torch.cat([h, positional_encoding(d, self.direction_frequencies)],
-                                           dim=-1)))
-        return self.activate(self.output(h))
+    def head(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        encoded = positional_encoding(d, self.direction_frequencies)
+        return torch.relu(self.view(torch.cat([h, encoded], dim=-1)))
 
     def density_parameters(self) -> list[nn.Parameter]:
         return [*self.trunk.parameters(), *self.sigma.parameters(), *self.feature.parameters()]
@@ -187,13 +195,12 @@ class GridField(Field):
         raw = self._interpolate(self.density_grid, index, weight)[:, 0]
         return nn.functional.softplus(raw + GRID_DENSITY_SHIFT) * self.voxels_per_unit, x
 
-    def colour(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    def head(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         features = self._interpolate(self.feature_grid, *self._corners(h))
         if self.direction_frequencies is not None:
             features = torch.cat([features, positional_encoding(d, self.direction_frequencies)],
                                  dim=-1)
-        hidden = torch.relu(self.hidden(features))
-        return self.activate(self.output(hidden))
+        return torch.relu(self.hidden(features))
 
     def density_parameters(self) -> list[nn.Parameter]:
         return [self.density_grid.weight]

@@ -221,27 +221,43 @@ def composite(sigma: torch.Tensor, deltas: torch.Tensor) -> tuple[torch.Tensor, 
     return transmittance * (1 - torch.exp(-optical)), transmittance
 
 
-def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
-                directions: torch.Tensor, n_samples: int | None, step: float | None,
-                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite the field's outputs along rays.
+@dataclass
+class Samples:
+    """Samples along a batch of rays that fall in occupied cells, packed.
+
+    Attributes
+    ----------
+    ray : (P,) int64
+        The ray of each sample.
+    h : (P, ...)
+        The density part's output for the colour part.
+    weight : (P,)
+        Compositing weight T_i alpha_i.
+    transmittance : (P,)
+    opacity : (R,)
+        Accumulated opacity of each ray.
+    """
+
+    ray: torch.Tensor
+    h: torch.Tensor
+    weight: torch.Tensor
+    transmittance: torch.Tensor
+    opacity: torch.Tensor
+
+
+def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.Tensor,
+               n_samples: int | None, step: float | None,
+               generator: torch.Generator | None = None) -> Samples:
+    """Sample rays and run the density part where the occupancy grid is occupied.
 
     Samples are spaced ``step`` apart from where a ray enters the box (grids), or
     ``n_samples`` evenly across the box (MLPs); ``generator`` jitters them
-    (training). Samples in empty cells skip the field; samples of weight below
-    ``TERMINATION`` skip its colour part.
+    (training). Samples in empty cells skip the field.
 
     Parameters
     ----------
     origins, directions : (R, 3)
         Normalised coordinates; unit directions.
-
-    Returns
-    -------
-    values : (R, C)
-        Composited outputs, premultiplied by opacity.
-    acc : (R,)
-        Accumulated opacity.
     """
     near, far = box_intersection(origins, directions, occupancy.extent)
     if step is None:
@@ -261,9 +277,26 @@ def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
     sigma_packed, h = field.density(points[ray, sample])
     sigma = torch.zeros_like(t).index_put((ray, sample), sigma_packed)
     weights, transmittance = composite(sigma, deltas[:, None].expand_as(t))  # (R, S)
-    packed_weights = weights[ray, sample]
-    keep = transmittance[ray, sample].detach() > TERMINATION
-    values = field.colour(h[keep], directions[ray[keep]])  # (P, C)
+    return Samples(ray, h, weights[ray, sample], transmittance[ray, sample], weights.sum(1))
+
+
+def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
+                directions: torch.Tensor, n_samples: int | None, step: float | None,
+                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite the field's outputs along rays (``march_rays``); samples of weight
+    below ``TERMINATION`` skip the colour part.
+
+    Returns
+    -------
+    values : (R, C)
+        Composited outputs, premultiplied by opacity.
+    acc : (R,)
+        Accumulated opacity.
+    """
+    samples = march_rays(field, occupancy, origins, directions, n_samples, step, generator)
+    keep = samples.transmittance.detach() > TERMINATION
+    ray = samples.ray[keep]
+    values = field.colour(samples.h[keep], directions[ray])  # (P, C)
     out = torch.zeros(len(origins), values.shape[-1], device=values.device, dtype=values.dtype)
-    out = out.index_add(0, ray[keep], packed_weights[keep, None] * values)
-    return out, weights.sum(1)
+    out = out.index_add(0, ray, samples.weight[keep, None] * values)
+    return out, samples.opacity

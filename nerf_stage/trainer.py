@@ -37,7 +37,15 @@ from palette_core.stack import WeightStack, n_terms
 from .config import TrainConfig
 from .data import Dataset, Intrinsics, join_weights
 from .fields import Field, make_field
-from .rendering import OccupancyGrid, SceneBox, camera_rays, render_rays, scene_box
+from .rendering import (
+    TERMINATION,
+    OccupancyGrid,
+    SceneBox,
+    camera_rays,
+    march_rays,
+    render_rays,
+    scene_box,
+)
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -181,6 +189,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         finetuning = config.strategy == "two-stage" and it >= config.pretrain_iters
         if finetuning and run.field.kind == "rgb":
             _start_finetune(run)
+            _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
         if (config.backbone == "grid" and not finetuning and it >= config.warmup_iters
                 and it % config.occupancy_every == 0):
@@ -207,21 +216,29 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
 def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Tensor, float]:
     """Loss of one batch of rays, and the PSNR of its colours (through the weights).
 
-    L2 on RGB while the output is RGB, else on the premultiplied weights; plus,
-    while the density trains, ``opacity_weight`` x L2 of the opacity against alpha.
+    L2 on RGB while the output is RGB, else ``_weight_loss``; plus, while the density
+    trains, ``opacity_weight`` x L2 of the opacity against alpha.
     """
     values, acc = run.render_rays(rays["origins"], rays["directions"], generator)
     if run.field.kind == "rgb":
         rgb = values + (1 - acc[:, None]) * background
         loss = torch.mean((rgb - rays["rgb"]) ** 2)
     else:
-        loss = torch.mean((values - rays["weights"]) ** 2)
+        loss = _weight_loss(run.field.kind, values, rays["weights"])
         rgb = values @ terms + (1 - acc[:, None]) * background
     if acc.requires_grad:
         loss = loss + run.config.opacity_weight * torch.mean((acc - rays["alpha"]) ** 2)
     with torch.no_grad():
         mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"]) ** 2))
     return loss, -10 * math.log10(max(mse, 1e-10))
+
+
+def _weight_loss(kind: str, values: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """L2 of (R, M) premultiplied weights; transport weights are tone-mapped by
+    w / (1 + w) first, so that emitters of radiance far above one do not drown the rest."""
+    if kind == "transport":
+        values, targets = values / (1 + values), targets / (1 + targets)
+    return torch.mean((values - targets) ** 2)
 
 
 def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
@@ -254,6 +271,39 @@ def _start_finetune(run: Run) -> None:
     for p in run.field.density_parameters():
         p.requires_grad_(False)
     run.field.set_output(run.basis, run.meta["channels"])
+
+
+def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: int = 100) -> None:
+    """Fit the new output layer alone before fine-tuning starts.
+
+    The frozen field is run once over a batch of training rays; the output layer's
+    inputs at their visible samples are cached, and the layer is fitted to the
+    rays' weights (the training loss) by L-BFGS on that cache. This costs about one
+    training step, and fine-tuning then starts near the RGB NeRF's quality instead
+    of from a random layer (a few dB instead of about 25 on the simulated scenes).
+    """
+    field = run.field
+    batch = torch.randint(len(rays["origins"]), (run.config.batch_rays,), generator=generator,
+                          device=rays["origins"].device)
+    directions = rays["directions"][batch]
+    with torch.no_grad():
+        samples = march_rays(field, run.occupancy, rays["origins"][batch], directions,
+                             run.config.mlp_samples, run.step)
+        keep = samples.transmittance > TERMINATION
+        ray, weight = samples.ray[keep], samples.weight[keep, None]
+        features = field.head(samples.h[keep], directions[ray])
+    targets = rays["weights"][batch]
+    fit = torch.optim.LBFGS(field.output.parameters(), max_iter=iterations,
+                            line_search_fn="strong_wolfe")
+
+    def closure():
+        fit.zero_grad()
+        values = torch.zeros_like(targets).index_add(0, ray, weight * field.colour_output(features))
+        loss = _weight_loss(field.kind, values, targets)
+        loss.backward()
+        return loss
+
+    fit.step(closure)
 
 
 def _optimisers(run: Run) -> list[torch.optim.Optimizer]:

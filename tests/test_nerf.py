@@ -12,7 +12,7 @@ from nerf_stage import trainer as trainer_module  # noqa: E402
 from nerf_stage.cameras import orbit_poses, rig_poses  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.config import TrainConfig  # noqa: E402
-from nerf_stage.data import load_dataset  # noqa: E402
+from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.editing import read_render  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
 from nerf_stage.rendering import composite, scene_box, visual_hull  # noqa: E402
@@ -126,6 +126,37 @@ def test_additive_renders_sum_to_the_opacity(still_life, tmp_path):
     weights, opacity = run.render(data.poses[data.indices("test")])
     assert weights.shape == (2, 16, 16, 4) and np.all(weights >= 0)
     assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
+
+
+def test_transport_loss_tone_maps_emitters():
+    loss = trainer_module._weight_loss
+    lamp, twice = torch.tensor([[30.0, 0.2]]), torch.tensor([[60.0, 0.2]])
+    assert loss("transport", twice, lamp) < 2e-4  # a lamp at twice its radiance: both white
+    assert loss("transport", torch.tensor([[1.0, 0.0]]), torch.zeros(1, 2)) == 0.125
+    assert loss("additive", twice, lamp) == 450.0
+
+
+@pytest.mark.parametrize("scene", ["cornell", "still_life"])
+def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_path):
+    root = request.getfixturevalue(scene)
+    config = tiny_config(strategy="rgb", pretrain_iters=4, finetune_iters=0, batch_rays=1024)
+    run = trained(root, config, tmp_path / "run")
+    dataset, stack = load_dataset(root), read_stack(root / "weights.npz")
+    train_ids = dataset.indices("train")
+    weights = join_weights(dataset, stack)
+    if stack.basis == "additive":
+        weights = weights * dataset.alpha[train_ids, ..., None]
+    rays = trainer_module._ray_bank(run, dataset, train_ids, weights, torch.device("cpu"))
+
+    def batch_loss():
+        with torch.no_grad():
+            values, _ = run.render_rays(rays["origins"], rays["directions"])
+            return float(trainer_module._weight_loss(run.field.kind, values, rays["weights"]))
+
+    trainer_module._start_finetune(run)
+    fresh = batch_loss()
+    trainer_module._fit_output(run, rays, torch.Generator().manual_seed(0))
+    assert batch_loss() < 0.75 * fresh
 
 
 def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch):
