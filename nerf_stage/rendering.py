@@ -244,6 +244,19 @@ class Samples:
     transmittance: torch.Tensor
     opacity: torch.Tensor
 
+    def visible(self) -> Samples:
+        """The samples in front of ``TERMINATION`` transmittance (the others skip the colour
+        part)."""
+        keep = self.transmittance.detach() > TERMINATION
+        return Samples(self.ray[keep], self.h[keep], self.weight[keep],
+                       self.transmittance[keep], self.opacity)
+
+    def composite(self, values: torch.Tensor) -> torch.Tensor:
+        """(P, C) per-sample values -> (R, C) composited along the rays."""
+        out = torch.zeros(len(self.opacity), values.shape[-1], device=values.device,
+                          dtype=values.dtype)
+        return out.index_add(0, self.ray, self.weight[:, None] * values)
+
 
 def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.Tensor,
                n_samples: int | None, step: float | None,
@@ -283,8 +296,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
 def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
                 directions: torch.Tensor, n_samples: int | None, step: float | None,
                 generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite the field's outputs along rays (``march_rays``); samples of weight
-    below ``TERMINATION`` skip the colour part.
+    """Composite the field's outputs along rays (``march_rays``); samples behind
+    ``TERMINATION`` transmittance skip the colour part (``Samples.visible``).
 
     Returns
     -------
@@ -293,10 +306,7 @@ def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
     acc : (R,)
         Accumulated opacity.
     """
-    samples = march_rays(field, occupancy, origins, directions, n_samples, step, generator)
-    keep = samples.transmittance.detach() > TERMINATION
-    ray = samples.ray[keep]
-    values = field.colour(samples.h[keep], directions[ray])  # (P, C)
-    out = torch.zeros(len(origins), values.shape[-1], device=values.device, dtype=values.dtype)
-    out = out.index_add(0, ray, samples.weight[keep, None] * values)
-    return out, samples.opacity
+    samples = march_rays(field, occupancy, origins, directions, n_samples, step,
+                         generator).visible()
+    values = field.colour(samples.h, directions[samples.ray])  # (P, C)
+    return samples.composite(values), samples.opacity
