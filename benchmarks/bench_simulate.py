@@ -31,7 +31,7 @@ from nerf_stage.simulation import (
     with_overrides,
     with_palette,
 )
-from palette_core.recolor import weights_to_rgb
+from palette_core.basis import weights_to_rgb
 
 EDITED = np.array([[0.1, 0.45, 0.2],  # red wall -> green
                    [0.7, 0.1, 0.1],  # green wall -> red

@@ -3,9 +3,10 @@
 Convert the palette to HCL (``hcl``), fit one of seven hue templates
 (``templates``) by the weighted hue-distance cost (``fit``), move each hue onto
 its nearest axis keeping lightness and chroma (``project``), and draw hue wheels
-(``render``), after Tan, Echevarria and Gingold (2018) as used by PaletteNeRF.
+(``render``); ``batch`` harmonises whole weight stacks, after Tan, Echevarria and Gingold (2018) as used by PaletteNeRF.
 """
 
+from .batch import StackHarmonization, harmonize_stack
 from .fit import TemplateFit, fit_all_templates, fit_template, palette_shares, template_cost
 from .hcl import hcl_to_srgb, hcl_to_srgb_in_gamut, in_srgb_gamut, srgb_to_hcl
 from .project import Harmonization, harmonize_palette, harmonize_with_fit, project_palette
@@ -15,6 +16,7 @@ from .templates import TEMPLATES, Template, get_template
 __all__ = [
     "TEMPLATES",
     "Harmonization",
+    "StackHarmonization",
     "Template",
     "TemplateFit",
     "contact_sheet",
@@ -22,6 +24,7 @@ __all__ = [
     "fit_template",
     "get_template",
     "harmonize_palette",
+    "harmonize_stack",
     "harmonize_with_fit",
     "hcl_to_srgb",
     "hcl_to_srgb_in_gamut",

@@ -14,13 +14,12 @@ which finds the global minimum exactly (no sweep step, no local refinement).
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
+from palette_core.basis import term_multiplicities
 from palette_core.constants import ACHROMATIC_CHROMA
-from palette_core.recolor import transport_terms
 from palette_core.stack import WeightStack
 
 from .templates import TEMPLATES, Template
@@ -130,13 +129,6 @@ def palette_shares(stack: WeightStack) -> np.ndarray:
     k = len(stack.palette)
     totals = sum(np.clip(w.reshape(-1, w.shape[-1]).astype(np.float64), 0, None).sum(axis=0)
                  for w in stack.weights)
-    if stack.basis == "additive":
-        per_colour = np.asarray(totals, np.float64)
-    else:
-        counts = np.zeros((len(totals), k))
-        for t, combo in enumerate(transport_terms(k, stack.order)):
-            for i, n in Counter(combo).items():
-                counts[t, i] = n
-        per_colour = totals @ counts
+    per_colour = totals @ term_multiplicities(k, stack.basis, stack.order)
     total = per_colour.sum()
     return per_colour / total if total > 0 else np.full(k, 1.0 / k)

@@ -111,14 +111,19 @@ def harmonize_palette(
         raise InputError(f"palette must have shape (K, 3) with K >= 1, got {palette.shape}")
     if shares.shape != (len(palette),):
         raise InputError(f"shares must have shape ({len(palette)},), got {shares.shape}")
-    if not 0.0 <= strength <= 1.0:
-        raise InputError(f"strength must lie in [0, 1], got {strength}")
+    check_strength(strength)
     hcl = srgb_to_hcl(palette)
     if template == "best":
         fit = min(fit_all_templates(hcl, shares).values(), key=lambda f: f.cost)
     else:
         fit = fit_template(hcl, shares, get_template(template))
     return harmonize_with_fit(palette, fit, strength)
+
+
+def check_strength(strength: float) -> None:
+    """InputError unless ``strength`` lies in [0, 1]."""
+    if not 0.0 <= strength <= 1.0:
+        raise InputError(f"strength must lie in [0, 1], got {strength}")
 
 
 def harmonize_with_fit(palette: np.ndarray, fit: TemplateFit, strength: float) -> Harmonization:

@@ -14,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from palette_core.recolor import palette_to_hex
+from palette_core.palette_file import palette_to_hex
 
 from .hcl import hcl_to_srgb_in_gamut
 

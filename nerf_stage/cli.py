@@ -14,8 +14,8 @@ import numpy as np
 
 from palette_core.cli import ArgumentParser, run_cli
 from palette_core.errors import InputError
-from palette_core.io import atomic_outputs, save_image
-from palette_core.recolor import read_palette_json
+from palette_core.outputs import atomic_outputs, save_image
+from palette_core.palette_file import read_palette_json
 from palette_core.render import palette_swatch
 
 from .simulation import (

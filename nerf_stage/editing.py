@@ -18,7 +18,7 @@ from PIL import Image
 from skimage.metrics import structural_similarity
 
 from palette_core.errors import InputError
-from palette_core.recolor import weights_to_rgb
+from palette_core.basis import weights_to_rgb
 from palette_core.stack import WeightStack
 
 from .cameras import orbit_poses

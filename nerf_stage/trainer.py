@@ -31,7 +31,7 @@ import torch
 from tqdm import tqdm
 
 from palette_core.errors import InputError
-from palette_core.recolor import basis_terms
+from palette_core.basis import basis_terms
 from palette_core.stack import WeightStack, n_terms
 
 from .config import TrainConfig

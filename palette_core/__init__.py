@@ -1,30 +1,34 @@
 """palette_core: shared palettes and additive weights for sets of images.
 
-Stitch all pixels of all images, extract one palette by convex-hull
-simplification (``hull``), compute per-pixel additive weights with mean value
-coordinates (``mvc``), store them as an NPZ weight stack (``stack``) and recolour
-by editing the palette (``recolor``).
+Stitch all pixels of all images into one colour set (``colour_set``), extract one
+palette (``palettes``: convex-hull simplification, ``hull``), compute per-pixel
+weights (``weights``: mean value coordinates, ``mvc``, or RGBXY, ``rgbxy``), store
+them as an NPZ weight stack (``stack``) and recolour by editing the palette
+(``basis``, ``recolor``). docs/architecture.md shows how the modules fit together.
 """
 
-from .decompose import decompose
+from .basis import Basis, basis_terms, n_terms, transport_basis, transport_terms, weights_to_rgb
+from .colour_set import ColourSet
+from .decompose import Decomposition, decompose
 from .errors import InputError
 from .hull import extract_palette, simplification_levels
-from .io import ColourSet, LoadedImage, find_images, load_image
+from .io import LoadedImage, find_images, load_image
 from .mvc import rgb_to_mvc_weights
+from .palette_file import palette_to_hex, read_palette_json, write_palette_json
+from .palettes import PALETTE_METHODS, palette_polytope
 from .polytope import Polytope, polytope_from_points, polytope_rmse, project_to_polytope
-from .recolor import (
-    basis_terms,
-    read_palette_json,
-    transport_basis,
-    weights_to_rgb,
-    write_palette_json,
-)
+from .recolor import recolor_stack
 from .stack import WeightStack, read_stack, write_stack
+from .weights import WEIGHT_METHODS, image_weights
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "PALETTE_METHODS",
+    "WEIGHT_METHODS",
+    "Basis",
     "ColourSet",
+    "Decomposition",
     "InputError",
     "LoadedImage",
     "Polytope",
@@ -33,15 +37,21 @@ __all__ = [
     "decompose",
     "extract_palette",
     "find_images",
+    "image_weights",
     "load_image",
+    "n_terms",
+    "palette_polytope",
+    "palette_to_hex",
     "polytope_from_points",
     "polytope_rmse",
     "project_to_polytope",
     "read_palette_json",
     "read_stack",
+    "recolor_stack",
     "rgb_to_mvc_weights",
     "simplification_levels",
     "transport_basis",
+    "transport_terms",
     "weights_to_rgb",
     "write_palette_json",
     "write_stack",

@@ -1,38 +1,27 @@
-"""The decomposition pipeline: images -> one shared palette -> a weight stack."""
+"""The decomposition pipeline: images -> one shared palette -> a weight stack, and its files."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from .colour_set import ColourSet
 from .errors import InputError
-from .hull import extract_palette
-from .io import ColourSet, LoadedImage, find_images, load_images
-from .mvc import rgb_to_mvc_weights
-from .polytope import Polytope
-from .rgbxy import rgbxy_image_weights
-from .stack import WeightStack
+from .io import find_images, load_images
+from .outputs import atomic_outputs, check_writable, save_image
+from .palette_file import write_palette_json
+from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
+from .registry import validate_method
+from .render import layer_paths, palette_swatch
+from .stack import WeightStack, check_dtype, write_stack
+from .weights import check_weight_method, image_weights
 
 #: Above this many images, loading and weighting show progress bars.
 PROGRESS_MIN_IMAGES = 8
-
-
-def mvc_image_weights(
-    colour_set: ColourSet, images: list[LoadedImage], poly: Polytope
-) -> Iterator[np.ndarray]:
-    """(H, W, K) MVC weights per image, computed once per distinct colour and scattered."""
-    unique = rgb_to_mvc_weights(colour_set.colours, poly)
-    for i, image in enumerate(images):
-        yield unique[colour_set.image_indices(i)].reshape(*image.opaque.shape, -1)
-
-
-#: Weight methods by name: (colour set, images, palette polytope, **options) -> weights
-#: per image.
-WEIGHT_METHODS = {"mvc": mvc_image_weights, "rgbxy": rgbxy_image_weights}
 
 
 @dataclass
@@ -48,22 +37,78 @@ class Decomposition:
     rmse_overall : float
         The same over all pixels of all images.
     timings : dict of str to float
-        Seconds per stage: load, palette, weights.
+        Seconds per stage: load, palette, weights (and write, once written).
+    requested_k : int or None
+        The palette size asked for.
     """
 
     stack: WeightStack
     rmse: dict[str, float]
     rmse_overall: float
     timings: dict[str, float]
+    requested_k: int | None = None
+
+    @property
+    def hull_too_small(self) -> bool:
+        """The colours' hull has fewer vertices than the K asked for (the whole hull is used)."""
+        k = self.requested_k
+        return k is not None and len(self.stack.palette) < k and self.stack.meta["max_error"] is None
+
+    def output_paths(self, output: str | Path) -> list[Path]:
+        """The stack, and beside it the palette swatch and JSON (docs/formats.md)."""
+        output = Path(output)
+        return [output, output.parent / "palette.png", output.parent / "palette.json"]
+
+    def write(self, output: str | Path, layers: str | Path | None = None,
+              force: bool = False) -> list[Path]:
+        """Write the stack, its palette swatch and JSON, and optionally weight-map PNGs.
+
+        Every file is staged and published together (``outputs.atomic_outputs``).
+
+        Returns
+        -------
+        list of Path
+            The stack, the swatch, the palette JSON and the layers folder (if any).
+
+        Raises
+        ------
+        InputError
+            If ``output`` does not end in .npz, an output exists (without ``force``),
+            or a folder cannot be written.
+        """
+        stack_path, swatch, palette_json = paths = self.output_paths(output)
+        if stack_path.suffix != ".npz":
+            raise InputError(f"output must end in .npz, got {stack_path}")
+        check_writable(paths, force)
+        if layers is not None:
+            layers = Path(layers)
+            if layers.exists() and (not layers.is_dir() or (any(layers.iterdir()) and not force)):
+                raise InputError(f"layers folder {layers} exists and is not empty "
+                                 "(use --force to write into it)")
+            check_writable([layers / "probe"], True)
+        start = time.perf_counter()
+        stack = self.stack
+        with atomic_outputs() as stage:
+            with open(stage(stack_path), "wb") as f:
+                write_stack(stack, f)
+            palette_swatch(stack.palette).save(stage(swatch), format="PNG")
+            with open(stage(palette_json), "w") as f:
+                write_palette_json(f, stack.palette)
+            for name, weights in zip(stack.names, stack.weights) if layers else ():
+                for j, path in enumerate(layer_paths(layers, name, len(stack.palette))):
+                    save_image(stage(path), weights[..., j].astype(np.float32))
+        self.timings["write"] = time.perf_counter() - start
+        return paths + ([layers] if layers is not None else [])
 
 
 def decompose(
     inputs: list,
-    k: int | None = 6,
+    k: int | None = None,
     max_error: float | None = None,
     method: str = "mvc",
     dtype: str = "float32",
     method_options: dict | None = None,
+    palette_method: str = "hull",
 ) -> Decomposition:
     """Decompose image files and folders into one shared palette and per-pixel weights.
 
@@ -72,23 +117,27 @@ def decompose(
     inputs : list of path-like
         Image files and/or folders (searched recursively, sorted).
     k, max_error :
-        Palette size or reconstruction tolerance, see ``hull.extract_palette``.
+        Palette size or reconstruction tolerance, see ``hull.extract_palette``
+        (neither: ``hull.DEFAULT_K`` colours).
     method : str
-        A key of ``WEIGHT_METHODS``.
+        A key of ``weights.WEIGHT_METHODS``.
     dtype : {"float32", "float16"}
         Storage type of the weights.
     method_options : dict, optional
-        Keyword arguments of the weight method (``spatial_scale`` for rgbxy).
+        Keyword options of the weight method (``spatial_scale`` for rgbxy).
+    palette_method : str
+        A key of ``palettes.PALETTE_METHODS``.
 
     Raises
     ------
     InputError
         On unreadable inputs or invalid options.
     """
-    if method not in WEIGHT_METHODS:
-        raise InputError(f"method must be one of {sorted(WEIGHT_METHODS)}, got {method!r}")
-    if dtype not in ("float32", "float16"):
-        raise InputError(f"dtype must be float32 or float16, got {dtype!r}")
+    k = check_palette_size(k, max_error)
+    method_options = method_options or {}
+    check_weight_method(method, method_options)
+    validate_method(palette_method, PALETTE_METHODS, "palette method")
+    check_dtype(dtype)
     timings = {}
     start = time.perf_counter()
     root, paths = find_images(inputs)
@@ -98,13 +147,12 @@ def decompose(
     timings["load"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    poly = extract_palette(colour_set.colours, colour_set.counts, k, max_error)
+    poly = palette_polytope(colour_set.colours, colour_set.counts, k, max_error, palette_method)
     palette = poly.vertices.astype(np.float32)
     timings["palette"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    method_options = method_options or {}
-    produced = WEIGHT_METHODS[method](colour_set, images, poly, **method_options)
+    produced = image_weights(colour_set, poly, method, **method_options)
     weights = [w.astype(dtype) for w in tqdm(produced, total=len(images), desc="weights",
                                              unit="img", disable=not progress)]
     timings["weights"] = time.perf_counter() - start
@@ -134,4 +182,4 @@ def decompose(
     }
     stack = WeightStack(palette, weights, [im.name for im in images], method,
                         hull_faces=poly.faces.astype(np.int32), meta=meta)
-    return Decomposition(stack, rmse, overall, timings)
+    return Decomposition(stack, rmse, overall, timings, k)

@@ -34,6 +34,9 @@ from .polytope import Polytope, polytope_from_points, polytope_rmse
 
 _MIX = np.uint64(0x9E3779B97F4A7C15)
 
+#: Palette size when neither ``k`` nor ``max_error`` is given.
+DEFAULT_K = 6
+
 #: Cost per unit of slack in the collapse LP; far above any added volume
 #: (the LP box is a few units wide), so the slack is zero whenever it can be.
 _SLACK_PENALTY = 1e6
@@ -216,7 +219,7 @@ def extract_palette(
         Pixels per colour; colours with count 0 do not shape the palette.
     k : int or None
         Stop at this many vertices (at least 4). With ``max_error`` too, the
-        palette has at most ``k`` colours.
+        palette has at most ``k`` colours; with neither, ``DEFAULT_K``.
     max_error : float or None
         Instead: the smallest palette whose reconstruction RMSE (0-255 scale,
         per channel, over all pixels) is at most this.
@@ -236,10 +239,7 @@ def extract_palette(
     >>> poly.vertices.shape, bool(((poly.vertices >= 0) & (poly.vertices <= 1)).all())
     ((5, 3), True)
     """
-    if k is not None and k < 4:
-        raise InputError(f"k must be at least 4, got {k}")
-    if max_error is not None and not max_error >= 0:
-        raise InputError(f"max_error must be a non-negative number, got {max_error}")
+    k = check_palette_size(k, max_error)
     used = counts > 0
     hull = polytope_from_points(colours[used])
     if hull.dim < 2 or (max_error is None and len(hull.vertices) <= k):
@@ -254,6 +254,21 @@ def extract_palette(
         if polytope_rmse(colours[used], counts[used], poly) <= max_error:
             return poly
     return _clipped(hull, candidates[0])
+
+
+def check_palette_size(k: int | None, max_error: float | None) -> int | None:
+    """The palette size to aim for (``DEFAULT_K`` when neither is given), validated.
+
+    Raises
+    ------
+    InputError
+        If ``k`` < 4 or ``max_error`` is negative or not a number.
+    """
+    if k is not None and k < 4:
+        raise InputError(f"k must be at least 4, got {k}")
+    if max_error is not None and not max_error >= 0:
+        raise InputError(f"max_error must be a non-negative number, got {max_error}")
+    return DEFAULT_K if k is None and max_error is None else k
 
 
 def _clipped(frame: Polytope, level: np.ndarray) -> Polytope:

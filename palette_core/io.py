@@ -1,4 +1,4 @@
-"""Image input, stitching into one colour set, and atomic output files.
+"""Image input: finding image files and decoding them.
 
 Images are read with Pillow (PNG, JPEG, TIFF, BMP, WebP and whatever else it
 knows); 16-bit RGB(A) PNG and TIFF, which Pillow reduces to 8 bits, are read with
@@ -8,9 +8,7 @@ and fully transparent pixels are marked so the palette can leave them out.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -162,117 +160,3 @@ def load_images(paths: list[Path], root: Path, progress: bool = False) -> list[L
         load_image(p, p.relative_to(root).as_posix())
         for p in tqdm(paths, desc="loading", unit="img", disable=not progress)
     ]
-
-
-@dataclass
-class ColourSet:
-    """All pixels of all images stitched together and deduplicated exactly.
-
-    Attributes
-    ----------
-    colours : (U, 3) float64
-        The distinct colours in [0, 1], sorted by packed integer value.
-    counts : (U,) int64
-        How many opaque pixels have each colour (0 for colours seen only in
-        fully transparent pixels: they get weights but do not shape the palette).
-    inverse : (N,) int64
-        Index into ``colours`` of every stitched pixel.
-    offsets : (n_images + 1,) int64
-        Image ``i`` owns ``inverse[offsets[i]:offsets[i + 1]]``.
-    """
-
-    colours: np.ndarray
-    counts: np.ndarray
-    inverse: np.ndarray
-    offsets: np.ndarray
-
-    @classmethod
-    def from_images(cls, images: list[LoadedImage]) -> ColourSet:
-        sixteen = any(im.pixels.dtype == np.uint16 for im in images)
-        bits = 16 if sixteen else 8
-        codes = np.concatenate([_pack(im.pixels, bits) for im in images])
-        opaque = np.concatenate([im.opaque.ravel() for im in images])
-        offsets = np.cumsum([0] + [im.opaque.size for im in images])
-        unique, inverse = _unique_codes(codes, bits)
-        counts = np.bincount(inverse[opaque], minlength=len(unique)).astype(np.int64)
-        mask = (1 << bits) - 1
-        channels = np.stack([unique >> (2 * bits), (unique >> bits) & mask, unique & mask], -1)
-        return cls(channels / float(mask), counts, inverse, offsets)
-
-    def image_indices(self, i: int) -> np.ndarray:
-        """Indices into ``colours`` of image ``i``'s pixels, in raster order."""
-        return self.inverse[self.offsets[i] : self.offsets[i + 1]]
-
-
-def _pack(pixels: np.ndarray, bits: int) -> np.ndarray:
-    """(H, W, 3) integer pixels -> (H*W,) int64 codes; 8-bit values are widened to 16."""
-    p = pixels.reshape(-1, 3).astype(np.int64)
-    if bits == 16 and pixels.dtype == np.uint8:
-        p *= 257
-    return (p[:, 0] << (2 * bits)) | (p[:, 1] << bits) | p[:, 2]
-
-
-def _unique_codes(codes: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted unique codes and the inverse index; O(N) through a table for 8-bit data."""
-    if bits == 8 and len(codes) > (1 << 20):
-        present = np.bincount(codes, minlength=1 << 24) > 0
-        unique = np.flatnonzero(present)
-        table = np.empty(1 << 24, np.int64)
-        table[unique] = np.arange(len(unique))
-        return unique, table[codes]
-    return np.unique(codes, return_inverse=True)
-
-
-@contextlib.contextmanager
-def atomic_outputs():
-    """Stage output files and publish them together, or not at all.
-
-    Yields a function ``stage(final_path) -> temp_path``: write to the temporary
-    path it returns. When the block ends without error every staged file is
-    renamed onto its final path; on error every temporary file is removed.
-    """
-    staged: list[tuple[Path, Path]] = []
-
-    def stage(final: str | os.PathLike) -> Path:
-        final = Path(final)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{final.stem}.", suffix=".tmp" + final.suffix, dir=final.parent
-        )
-        os.close(fd)
-        staged.append((Path(tmp), final))
-        return Path(tmp)
-
-    try:
-        yield stage
-    except BaseException:
-        for tmp, _ in staged:
-            tmp.unlink(missing_ok=True)
-        raise
-    for tmp, final in staged:
-        os.replace(tmp, final)
-
-
-def check_writable(paths: list[Path], force: bool) -> None:
-    """Fail early if an output exists (without ``force``) or its folder cannot be written.
-
-    Raises
-    ------
-    InputError
-        Naming the first offending path.
-    """
-    for path in map(Path, paths):
-        if path.exists() and not force:
-            raise InputError(f"output {path} already exists (use --force to overwrite)")
-        if path.is_dir():
-            raise InputError(f"output {path} is a folder, expected a file path")
-        folder = next(p for p in [path.parent, *path.parent.parents] if p.exists())
-        if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-            raise InputError(f"cannot write output {path}: {folder} is not a writable folder")
-
-
-def save_image(path: Path, rgb: np.ndarray) -> None:
-    """Write (H, W, 3), (H, W, 4) or (H, W) floats in [0, 1] as an 8-bit image (suffix = format)."""
-    data = np.round(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)
-    fmt = Image.registered_extensions().get(path.suffix.lower(), "PNG")
-    Image.fromarray(data).save(path, format=fmt, **({"quality": 95} if fmt == "JPEG" else {}))

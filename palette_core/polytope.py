@@ -82,13 +82,13 @@ def polytope_from_points(points: np.ndarray) -> Polytope:
     dim = int(np.sum(sing > RANK_TOL * sing[0])) if spread > RANK_TOL else 0
     no_faces = np.zeros((0, 3), np.int64)
     if dim == 3:
-        hull = _qhull(points)
+        hull = qhull(points)
         if hull is not None:
             return _polyhedron(points, hull)
         dim = 2
     if dim == 2:
         basis = frame[:2]
-        hull = _qhull((points - origin) @ basis.T)
+        hull = qhull((points - origin) @ basis.T)
         if hull is not None:  # 2-D hull vertices come counter-clockwise
             return Polytope(points[hull.vertices], 2, origin, basis, no_faces)
         dim = 1
@@ -99,8 +99,9 @@ def polytope_from_points(points: np.ndarray) -> Polytope:
     return Polytope(points[:1], 0, points[0], np.zeros((0, 3)), no_faces)
 
 
-def _qhull(points: np.ndarray) -> ConvexHull | None:
-    """Qhull's hull, retried with joggle; None when the points are too flat for it."""
+def qhull(points: np.ndarray) -> ConvexHull | None:
+    """Qhull's hull of (n, d) points, retried with joggle (``QJ``, as trimesh does); None
+    when the points are too flat or too few for it."""
     for options in (None, "QJ"):
         try:
             return ConvexHull(points, qhull_options=options)

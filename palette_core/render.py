@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from .recolor import palette_to_hex
+from .palette_file import palette_to_hex
 
 
 def palette_swatch(palette: np.ndarray, size: int = 96) -> Image.Image:

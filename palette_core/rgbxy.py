@@ -23,11 +23,13 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, Delaunay, QhullError
+from scipy.spatial import Delaunay
 
+from .colour_set import ColourSet
 from .constants import RANK_TOL
-from .io import ColourSet, LoadedImage
-from .polytope import Polytope, project_to_polytope
+from .errors import InputError
+from .io import LoadedImage
+from .polytope import Polytope, project_to_polytope, qhull
 
 #: Pixels per chunk when building the hull and locating pixels.
 CHUNK_PIXELS = 1 << 18
@@ -123,19 +125,9 @@ def _hull_vertices(local_chunks: Iterator[np.ndarray], dim: int) -> np.ndarray:
         vertices = np.vstack([vertices, chunk])
         if dim == 1:
             vertices = vertices[[vertices.argmin(), vertices.argmax()]]
-        elif len(vertices) > dim + 1:
-            vertices = vertices[_qhull_vertices(vertices)]
+        elif len(vertices) > dim + 1 and (hull := qhull(vertices)) is not None:
+            vertices = vertices[hull.vertices]  # all points kept when Qhull fails twice
     return vertices
-
-
-def _qhull_vertices(points: np.ndarray) -> np.ndarray:
-    """Indices of the hull vertices, Qhull retried with joggle; all points if it fails."""
-    for options in (None, "QJ"):
-        try:
-            return ConvexHull(points, qhull_options=options).vertices
-        except QhullError:
-            continue
-    return np.arange(len(points))
 
 
 def star_coordinates(colours: np.ndarray, poly: Polytope) -> np.ndarray:
@@ -207,23 +199,32 @@ def _barycentrics(tessellation: Delaunay, points: np.ndarray) -> tuple[np.ndarra
 
 
 def rgbxy_image_weights(
-    colour_set: ColourSet, images: list[LoadedImage], poly: Polytope, spatial_scale: float = 1.0
+    colour_set: ColourSet, poly: Polytope, *, spatial_scale: float = 1.0
 ) -> Iterator[np.ndarray]:
     """(H, W, K) RGBXY weights per image (Tan, Echevarria, Gingold 2018).
 
     Parameters
     ----------
     colour_set : ColourSet
-        Unused (the method works on pixels, not distinct colours); kept so that
-        every entry of ``WEIGHT_METHODS`` takes the same arguments.
-    images : list of LoadedImage
-        Stitched into one canvas, row by row.
+        Its images are stitched into one canvas, row by row.
     poly : Polytope
         The palette polytope.
     spatial_scale : float
         Multiplies the canvas coordinates (normalised by the canvas's longer
         side): larger values make the weights follow image position more closely.
+
+    Raises
+    ------
+    InputError
+        If ``spatial_scale`` is not a positive number (before any work).
     """
+    if not 0 < spatial_scale < float("inf"):
+        raise InputError(f"spatial_scale must be a positive number, got {spatial_scale}")
+    return _rgbxy_weights(colour_set.images, poly, spatial_scale)
+
+
+def _rgbxy_weights(images: list[LoadedImage], poly: Polytope,
+                   spatial_scale: float) -> Iterator[np.ndarray]:
     frame = _affine_frame(images, spatial_scale)
     dim = len(frame.basis)
     if dim == 0:  # one pixel, or one colour at one place: a single vertex

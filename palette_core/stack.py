@@ -1,6 +1,6 @@
 """The weight stack: palette and per-image weights in one NPZ file (format v1).
 
-See DESIGN.md, "The weight stack (NPZ), version 1". The file loads with
+See docs/formats.md, "The weight stack". The file loads with
 ``numpy.load(path, allow_pickle=False)``; ``read_stack`` validates every key and
 names what is wrong.
 """
@@ -11,15 +11,14 @@ import json
 import os
 import zipfile
 from dataclasses import dataclass, field
-from math import comb
 from pathlib import Path
 
 import numpy as np
 
+from .basis import Basis, n_terms
 from .errors import InputError
 
 FORMAT = "palette-weights/1"
-BASES = ("additive", "transport")
 
 
 @dataclass
@@ -36,8 +35,8 @@ class WeightStack:
         Image paths relative to the input root.
     method : str
         ``"mvc"``, ``"rgbxy"`` or ``"simulated"``.
-    basis : str
-        ``"additive"`` (M = K) or ``"transport"`` (M = C(K + order, order)).
+    basis : Basis
+        ``ADDITIVE`` (M = K) or ``TRANSPORT`` (M = C(K + order, order)).
     order : int
         Transport order; 1 for additive stacks.
     hull_faces : (F, 3) int32
@@ -50,31 +49,29 @@ class WeightStack:
     weights: list[np.ndarray]
     names: list[str]
     method: str = "mvc"
-    basis: str = "additive"
+    basis: Basis = Basis.ADDITIVE
     order: int = 1
     hull_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32))
     meta: dict = field(default_factory=dict)
 
 
-def n_terms(k: int, basis: str, order: int) -> int:
-    """Number of weight channels M for K palette colours (C(K + n, n) for transport order n)."""
-    return k if basis == "additive" else comb(k + order, order)
+def write_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None = None) -> None:
+    """Write ``stack`` as NPZ format v1 to ``file`` (a path or a binary file object).
 
-
-def write_stack(stack: WeightStack, file: str | os.PathLike, dtype: str = "float32") -> None:
-    """Write ``stack`` as NPZ format v1 to ``file`` (a path or a binary file object)."""
-    if dtype not in ("float32", "float16"):
-        raise InputError(f"dtype must be float32 or float16, got {dtype!r}")
+    ``dtype`` (float32 or float16) converts the weights; None keeps the first image's.
+    """
+    dtype = str(stack.weights[0].dtype) if dtype is None else dtype
+    check_dtype(dtype)
     arrays = {
         "format": np.array(FORMAT),
         "palette": np.asarray(stack.palette, np.float32),
-        "basis": np.array(stack.basis),
+        "basis": np.array(str(stack.basis)),
         "order": np.array(stack.order, np.int64),
         "names": np.array(stack.names, dtype=str),
         "method": np.array(stack.method),
         "meta": np.array(json.dumps(stack.meta)),
     }
-    if stack.basis == "additive":
+    if stack.basis == Basis.ADDITIVE:
         arrays["hull_faces"] = np.asarray(stack.hull_faces, np.int32).reshape(-1, 3)
     shapes = {w.shape for w in stack.weights}
     if len(shapes) == 1:
@@ -121,14 +118,15 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
         raise InputError(f"{path}: palette must have shape (K, 3), got {palette.shape}")
     if not np.isfinite(palette).all() or palette.min() < 0 or palette.max() > 1:
         raise InputError(f"{path}: palette values must lie in [0, 1]")
-    basis = text("basis")
-    if basis not in BASES:
-        raise InputError(f"{path}: basis must be one of {BASES}, got {basis!r}")
+    try:
+        basis = Basis.parse(text("basis"))
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     order = need("order")
     if order.ndim != 0 or order.dtype.kind not in "iu" or order < 1:
         raise InputError(f"{path}: order must be an integer >= 1, got {order}")
     order = int(order)
-    if basis == "additive" and order != 1:
+    if basis == Basis.ADDITIVE and order != 1:
         raise InputError(f"{path}: an additive stack has order 1, got {order}")
     names = need("names")
     if names.ndim != 1 or names.dtype.kind != "U":
@@ -148,7 +146,7 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
             raise InputError(f"{path}: weights of {name} must be float32/float16 of shape "
                              f"(H, W, {m}), got {w.dtype} {w.shape}")
     hull_faces = np.zeros((0, 3), np.int32)
-    if basis == "additive":
+    if basis == Basis.ADDITIVE:
         hull_faces = need("hull_faces")
         if hull_faces.ndim != 2 or hull_faces.shape[1] != 3 or hull_faces.dtype.kind not in "iu":
             raise InputError(f"{path}: hull_faces must be integers of shape (F, 3)")
@@ -160,3 +158,9 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
         raise InputError(f"{path}: meta is not valid JSON: {exc}") from None
     return WeightStack(palette.astype(np.float32), weights, names.tolist(), text("method"),
                        basis, order, hull_faces.astype(np.int32), meta)
+
+
+def check_dtype(dtype: str) -> None:
+    """InputError unless ``dtype`` is a storage type of stack weights (float32, float16)."""
+    if dtype not in ("float32", "float16"):
+        raise InputError(f"dtype must be float32 or float16, got {dtype!r}")

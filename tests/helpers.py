@@ -4,7 +4,7 @@ import numpy as np
 
 
 def weight_invariants(weights, palette, colours):
-    """Assert the invariants every weight vector satisfies (DESIGN.md, issue 2 item 4)."""
+    """Assert the invariants every weight vector satisfies (docs/formats.md)."""
     from palette_core.constants import WEIGHT_MIN, WEIGHT_SUM_TOL
 
     weights = np.asarray(weights, np.float64)

@@ -92,9 +92,9 @@ def test_transport_stack(tmp_path, rng, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--template", "tetrad"], "unknown template 'tetrad'; choose one of monochrome, "),
-    (["--template", "triad", "--strength", "1.5"], "--strength must lie in [0, 1], got 1.5"),
-    (["--template", "triad", "--strength", "-0.1"], "--strength must lie in [0, 1]"),
-    (["--template", "triad", "--strength", "nan"], "--strength must lie in [0, 1]"),
+    (["--template", "triad", "--strength", "1.5"], "strength must lie in [0, 1], got 1.5"),
+    (["--template", "triad", "--strength", "-0.1"], "strength must lie in [0, 1]"),
+    (["--template", "triad", "--strength", "nan"], "strength must lie in [0, 1]"),
     (["--template", "triad", "-o", "x.png"], "output must end in .npz"),
     (["--strength", "1"], "the following arguments are required: --template"),
 ])

@@ -9,7 +9,8 @@ from palette_core import decompose, polytope_from_points
 from palette_core import rgbxy as rgbxy_module
 from palette_core.cli import decompose as decompose_cli
 from palette_core.hull import extract_palette
-from palette_core.io import ColourSet, LoadedImage
+from palette_core.colour_set import ColourSet
+from palette_core.io import LoadedImage
 from palette_core.rgbxy import canvas_offsets, rgbxy_image_weights, star_coordinates
 
 from .helpers import expect_error, weight_invariants
@@ -23,7 +24,7 @@ def loaded(pixels):
 def rgbxy_weights(images, k=6, **options):
     colour_set = ColourSet.from_images(images)
     poly = extract_palette(colour_set.colours, colour_set.counts, k, None)
-    return poly, list(rgbxy_image_weights(colour_set, images, poly, **options))
+    return poly, list(rgbxy_image_weights(colour_set, poly, **options))
 
 
 def test_matches_a_brute_force_oracle(rng, monkeypatch):
@@ -105,7 +106,7 @@ def test_degenerate_inputs(pixels):
     image = loaded(pixels)
     colour_set = ColourSet.from_images([image])
     poly = extract_palette(colour_set.colours, colour_set.counts, 6, None)
-    (weights,) = rgbxy_image_weights(colour_set, [image], poly)
+    (weights,) = rgbxy_image_weights(colour_set, poly)
     assert weights.shape == (*pixels.shape[:2], len(poly.vertices))
     flat = weights.reshape(-1, len(poly.vertices))
     weight_invariants(flat, poly.vertices, image.pixels.reshape(-1, 3) / 255.0)

@@ -13,7 +13,7 @@ from math import comb
 
 import numpy as np
 
-from palette_core.recolor import transport_terms
+from palette_core.basis import transport_terms
 
 from .kernels import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE
 from .scene import Scene

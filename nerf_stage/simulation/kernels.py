@@ -8,7 +8,7 @@ of each path splits exactly into (fixed factors) x (product of editable albedos)
 
 In ``split`` mode each contribution is added to the channel of the transport term
 named by the multiset of editable materials on its path (the ``next_term`` table
-walks the basis of ``palette_core.recolor.transport_terms``); in RGB mode editable
+walks the basis of ``palette_core.basis.transport_terms``); in RGB mode editable
 albedos are multiplied in like any other and everything lands in channel 0. Both
 modes draw the same random numbers in the same order, so with one seed they trace
 the same paths, and a path whose multiset outgrows the transport order is dropped

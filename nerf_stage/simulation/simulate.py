@@ -22,8 +22,9 @@ from tqdm import tqdm
 
 from palette_core import __version__
 from palette_core.errors import InputError
-from palette_core.io import save_image
-from palette_core.recolor import palette_to_hex, transport_basis
+from palette_core.outputs import save_image
+from palette_core.basis import Basis, transport_basis
+from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, write_stack
 
 from ..cameras import SPLIT_PHASES, blender_transforms, focal_from_fov, rig_poses

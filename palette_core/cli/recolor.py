@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-from ..io import atomic_outputs, check_writable, save_image
-from ..recolor import read_palette_json, weights_to_rgb
+from ..palette_file import read_palette_json
+from ..recolor import recolor_stack
 from ..stack import read_stack
 from . import ArgumentParser, run_cli
 
@@ -33,13 +32,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args) -> int:
     stack = read_stack(args.stack)
     palette = read_palette_json(args.palette, k=len(stack.palette))
-    folder = Path(args.output)
-    targets = [folder / name for name in stack.names]
-    check_writable(targets, args.force)
-    with atomic_outputs() as stage:
-        for target, weights in zip(targets, stack.weights):
-            save_image(stage(target), weights_to_rgb(weights, palette, stack.basis, stack.order))
-    print(f"wrote {len(targets)} recoloured images to {folder}")
+    written = recolor_stack(stack, palette, args.output, args.force)
+    print(f"wrote {len(written)} recoloured images to {args.output}")
     return 0
 
 
