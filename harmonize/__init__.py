@@ -3,7 +3,8 @@
 Convert the palette to HCL (``hcl``), fit one of seven hue templates
 (``templates``) by the weighted hue-distance cost (``fit``), move each hue onto
 its nearest axis keeping lightness and chroma (``project``), and draw hue wheels
-(``render``); ``batch`` harmonises whole weight stacks, after Tan, Echevarria and Gingold (2018) as used by PaletteNeRF.
+(``render``); ``batch`` harmonises whole weight stacks. After Tan, Echevarria and
+Gingold (2018), as used by PaletteNeRF.
 """
 
 from .batch import StackHarmonization, harmonize_stack

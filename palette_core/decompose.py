@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -51,8 +51,8 @@ class Decomposition:
     @property
     def hull_too_small(self) -> bool:
         """The colours' hull has fewer vertices than the K asked for (the whole hull is used)."""
-        k = self.requested_k
-        return k is not None and len(self.stack.palette) < k and self.stack.meta["max_error"] is None
+        k, max_error = self.requested_k, self.stack.meta["max_error"]
+        return k is not None and max_error is None and len(self.stack.palette) < k
 
     def output_paths(self, output: str | Path) -> list[Path]:
         """The stack, and beside it the palette swatch and JSON (docs/formats.md)."""

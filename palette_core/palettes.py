@@ -2,8 +2,8 @@
 
 ``PALETTE_METHODS`` maps a name to a function ``(colours, counts, k, max_error, *,
 options) -> Polytope`` (see ``hull.extract_palette`` for the meaning of ``k`` and
-``max_error``; every method validates them with ``check_palette_size``). Adding a method is one such function and one entry here
-(docs/architecture.md).
+``max_error``; every method validates them with ``check_palette_size``). Adding a
+method is one such function and one entry here (docs/architecture.md).
 """
 
 from __future__ import annotations

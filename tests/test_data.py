@@ -9,8 +9,8 @@ from PIL import Image
 
 from nerf_stage.cli import main
 from nerf_stage.data import join_weights, load_dataset
-from palette_core.errors import InputError
 from palette_core.basis import weights_to_rgb
+from palette_core.errors import InputError
 from palette_core.stack import WeightStack, read_stack
 
 POSE = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]

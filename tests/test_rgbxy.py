@@ -8,8 +8,8 @@ from scipy.spatial import ConvexHull, Delaunay
 from palette_core import decompose, polytope_from_points
 from palette_core import rgbxy as rgbxy_module
 from palette_core.cli import decompose as decompose_cli
-from palette_core.hull import extract_palette
 from palette_core.colour_set import ColourSet
+from palette_core.hull import extract_palette
 from palette_core.io import LoadedImage
 from palette_core.rgbxy import canvas_offsets, rgbxy_image_weights, star_coordinates
 

@@ -21,8 +21,8 @@ from nerf_stage.simulation import (
 )
 from nerf_stage.simulation.geometry import next_term_table
 from nerf_stage.simulation.kernels import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE, _intersect
-from palette_core.errors import InputError
 from palette_core.basis import transport_basis, transport_terms, weights_to_rgb
+from palette_core.errors import InputError
 from palette_core.stack import read_stack
 
 from .helpers import expect_error
