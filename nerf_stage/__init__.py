@@ -2,12 +2,15 @@
 datasets and weight stacks joined to them, and weight NeRFs (PaletteNeRF).
 
 The weight NeRF modules need torch (the ``nerf`` extra) and are imported by name:
-``config`` (TrainConfig), ``fields`` (backbones), ``rendering`` (rays, occupancy,
-compositing), ``trainer`` (train, load_run) and ``editing`` (weight renders,
-recolouring, evaluation). Imports ``palette_core``; never the reverse.
+``fields`` (backbones), ``rendering`` (occupancy, sampling, compositing), ``run``
+(the run folder: config, checkpoint, load_run), ``trainer`` (train), ``editing``
+(weight renders and recolouring) and ``evaluation`` (PSNR, SSIM, re-simulated
+edits); ``config`` and ``cameras`` need no torch. Imports ``palette_core`` and
+``harmonize``; never the reverse. docs/architecture.md shows how they fit together.
 """
 
-from .data import Dataset, Intrinsics, join_weights, load_dataset
+from .cameras import Intrinsics
+from .data import Dataset, join_weights, load_dataset
 from .simulation import Scene, Simulation, load_scene, simulate, write_dataset
 
 __all__ = [

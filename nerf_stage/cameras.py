@@ -1,4 +1,4 @@
-"""Pinhole cameras in the Blender / NeRF convention.
+"""Pinhole cameras in the Blender / NeRF convention: intrinsics, rays, poses on rigs.
 
 Poses are camera-to-world (4, 4) matrices with OpenGL axes: the camera looks down
 its -z axis, +y is up in the image, +x to the right. World +y is up.
@@ -7,6 +7,7 @@ its -z axis, +y is up in the image, +x to the right. World +y is up.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,9 +35,43 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     return pose
 
 
+@dataclass
+class Intrinsics:
+    """Pinhole camera shared by all frames: focal lengths and principal point in pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+
+def focal_length(width: int, fov_x: float) -> float:
+    """Focal length in pixels for a horizontal field of view ``fov_x`` in radians."""
+    return 0.5 * width / math.tan(0.5 * fov_x)
+
+
 def focal_from_fov(width: int, fov_x_degrees: float) -> float:
-    """Focal length in pixels for a horizontal field of view."""
-    return 0.5 * width / math.tan(0.5 * math.radians(fov_x_degrees))
+    """Focal length in pixels for a horizontal field of view in degrees."""
+    return focal_length(width, math.radians(fov_x_degrees))
+
+
+def camera_rays(pose: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """World rays through pixel centres of one camera (OpenGL axes: looks along -z).
+
+    Returns
+    -------
+    origins, directions : (H, W, 3) float64
+        Directions are unit vectors.
+    """
+    j, i = np.meshgrid(np.arange(intrinsics.height) + 0.5, np.arange(intrinsics.width) + 0.5,
+                       indexing="ij")
+    local = np.stack([(i - intrinsics.cx) / intrinsics.fx, -(j - intrinsics.cy) / intrinsics.fy,
+                      -np.ones_like(i)], axis=-1)
+    directions = local @ pose[:3, :3].T
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    return np.broadcast_to(pose[:3, 3], directions.shape).copy(), directions
 
 
 def rig_poses(rig: str, n: int, target, radius: float, elevation: tuple[float, float],

@@ -6,26 +6,16 @@ without the ``nerf`` extra.
 
 from __future__ import annotations
 
-import shutil
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from palette_core.cli import ArgumentParser, run_cli
+from palette_core.cli import ArgumentParser, add_config_arguments, config_from_args, run_cli
 from palette_core.errors import InputError
-from palette_core.outputs import atomic_outputs, save_image
+from palette_core.outputs import check_outdir
 from palette_core.palette_file import read_palette_json
-from palette_core.render import palette_swatch
 
-from .simulation import (
-    BUILTIN_SCENES,
-    check_outdir,
-    load_scene,
-    simulate,
-    with_overrides,
-    write_dataset,
-)
+from .config import TrainConfig
+from .simulation import BUILTIN_SCENES, load_scene, simulate, with_overrides, write_dataset
 
 PROG = "nerf-stage"
 
@@ -59,29 +49,18 @@ def build_parser() -> ArgumentParser:
 
 
 def _add_train(commands) -> None:
-    from .config import BACKBONES, STRATEGIES, TrainConfig
-
-    defaults = TrainConfig()
     train = commands.add_parser(
         "train", help="train a weight NeRF on a dataset and its weight stack",
         description="Train a NeRF whose colour head outputs the weight stack's M channels "
-                    "(PaletteNeRF). Writes RUNDIR/config.json and RUNDIR/checkpoint.pt.")
+                    "(PaletteNeRF). Writes RUNDIR/config.json and RUNDIR/checkpoint.pt. "
+                    "Every field of the training config is a flag.")
     train.add_argument("data", metavar="DATADIR", help="Blender or nerfstudio dataset folder")
     train.add_argument("--weights", required=True, metavar="STACK",
                        help="weight stack (.npz) of the training frames: palette-decompose's, "
                             "or weights.npz of a simulated scene")
     train.add_argument("-o", "--output", metavar="RUNDIR", default=None,
                        help="run folder (default: DATADIR-BACKBONE beside DATADIR)")
-    train.add_argument("--backbone", choices=BACKBONES, default=defaults.backbone,
-                       help=f"default {defaults.backbone}")
-    train.add_argument("--strategy", choices=STRATEGIES, default=defaults.strategy,
-                       help=f"default {defaults.strategy}")
-    for name in ("pretrain_iters", "finetune_iters", "batch_rays", "head_width", "grid_voxels",
-                 "seed"):
-        train.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(defaults, name),
-                           help=f"default {getattr(defaults, name)}")
-    train.add_argument("--background", type=float, nargs=3, default=defaults.background,
-                       metavar=("R", "G", "B"), help="colour behind the scene (default white)")
+    add_config_arguments(train, TrainConfig)
     again = train.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue RUNDIR's checkpoint")
     again.add_argument("--force", action="store_true", help="start RUNDIR afresh")
@@ -155,17 +134,13 @@ def _simulate(args) -> int:
 def _train(args) -> int:
     from palette_core.stack import read_stack
 
-    from .config import TrainConfig
     from .data import load_dataset
-    from .trainer import CHECKPOINT, train
+    from .run import CHECKPOINT
+    from .trainer import train
 
-    config = TrainConfig(
-        backbone=args.backbone, strategy=args.strategy, pretrain_iters=args.pretrain_iters,
-        finetune_iters=args.finetune_iters, batch_rays=args.batch_rays,
-        head_width=args.head_width, grid_voxels=args.grid_voxels, seed=args.seed,
-        background=tuple(args.background))
+    config = config_from_args(TrainConfig, args)
     data = Path(args.data)
-    rundir = Path(args.output or data.with_name(f"{data.name}-{args.backbone}"))
+    rundir = Path(args.output or data.with_name(f"{data.name}-{config.backbone}"))
     checkpoint = rundir / CHECKPOINT
     if args.resume and not checkpoint.is_file():
         raise InputError(f"--resume: {rundir} holds no checkpoint")
@@ -173,96 +148,40 @@ def _train(args) -> int:
         raise InputError(f"{rundir} already holds a run (use --resume to continue it or "
                          "--force to start afresh)")
     stack = read_stack(args.weights)
-    dataset = load_dataset(data, args.background)
-    meta = {"dataset": str(data.resolve()), "weights": str(Path(args.weights).resolve())}
-    run = train(config, dataset, stack, rundir, resume=args.resume, meta=meta)
-    log = run.meta["log"]
+    dataset = load_dataset(data, config.background)
+    run = train(config, dataset, stack, rundir, resume=args.resume,
+                weights_path=str(Path(args.weights).resolve()))
+    log = run.record.log
     print(f"trained {config.backbone} ({config.strategy}) for {log[-1]['iteration']} "
           f"iterations in {log[-1]['seconds']:.0f} s, last batch PSNR {log[-1]['psnr']:.2f} dB")
-    print(f"wrote {rundir / CHECKPOINT}; next: {PROG} render {rundir} -o DIR")
+    print(f"wrote {checkpoint}; next: {PROG} render {rundir} -o DIR")
     return 0
 
 
 def _render(args) -> int:
-    from harmonize import harmonize_palette, palette_shares
+    from .editing import RENDER_FILE, render_edits
 
-    from .data import load_dataset
-    from .editing import (
-        RENDER_FILE,
-        read_render,
-        render_poses,
-        render_weights,
-        write_render,
-    )
-    from .trainer import load_run
-
-    run = load_run(args.rundir)
-    palettes = {} if args.palette or args.harmonize else {"original": run.palette}
-    for path in args.palette:
-        palettes[Path(path).stem] = read_palette_json(path, k=len(run.palette))
-    views = f"orbit:{args.orbit}" if args.orbit is not None else args.split
-    source = {"run": str(Path(args.rundir).resolve()), "iteration": run.meta["iteration"],
-              "views": views}
-    out = Path(args.output)
-    cache = out / RENDER_FILE
-    render = read_render(cache) if cache.is_file() else None
-    if render is not None and render.source != source and not args.force:
-        raise InputError(f"{cache} holds another render ({render.source['views']} of "
-                         f"{render.source['run']}); use --force to replace it")
-    targets = [out / label for label in palettes] + [out / f"harmonized-{t}"
-                                                     for t in args.harmonize]
-    existing = [str(t) for t in targets if t.exists()]
-    if existing and not args.force:
-        raise InputError(f"output {existing[0]} already exists (use --force to overwrite)")
-    if render is not None and render.source == source:
-        print(f"recolouring the saved weight render {cache} (the network does not run)")
-    else:
-        dataset = load_dataset(run.meta["dataset"], run.config.background)
-        names, poses = render_poses(run, dataset, args.split, args.orbit)
-        render = render_weights(run, names, poses, source)
-        with atomic_outputs() as stage:
-            write_render(render, stage(cache))
-    if args.harmonize:
-        shares = palette_shares(render.as_stack())
-        for template in args.harmonize:
-            palettes[f"harmonized-{template}"] = harmonize_palette(
-                render.palette, shares, template).palette
-    for label, palette in palettes.items():
-        _write_recoloured(render, palette, out / label, args.orbit is not None, args.force)
-    print(f"wrote {', '.join(palettes)} ({len(render.names)} views) to {out}")
+    done = render_edits(args.rundir, args.output, args.palette, args.harmonize, args.split,
+                        args.orbit, args.force)
+    if done.reused:
+        print(f"recoloured the saved weight render {Path(args.output) / RENDER_FILE} "
+              "(the network does not run)")
+    print(f"wrote {', '.join(done.labels)} ({done.views} views) to {args.output}")
     return 0
-
-
-def _write_recoloured(render, palette: np.ndarray, folder: Path, gif: bool, force: bool) -> None:
-    """Views recoloured with ``palette`` into ``folder`` (swapped in whole), plus a GIF."""
-    from .editing import write_gif
-
-    images = render.recolor(palette)
-    staging = folder.with_name(f".{folder.name}.partial")
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    for name, image in zip(render.names, images):
-        save_image(staging / f"{name}.png", image)
-    palette_swatch(palette).save(staging / "palette.png")
-    with atomic_outputs() as stage:
-        if gif:
-            write_gif(stage(folder.with_suffix(".gif")), images)
-        if force:
-            shutil.rmtree(folder, ignore_errors=True)
-        staging.rename(folder)
 
 
 def _eval(args) -> int:
     from .data import load_dataset
-    from .editing import evaluate
-    from .trainer import load_run
+    from .evaluation import evaluate
+    from .fields import RGB
+    from .run import load_run
 
     run = load_run(args.rundir)
     edit = None if args.palette is None else read_palette_json(args.palette, k=len(run.palette))
-    dataset = load_dataset(run.meta["dataset"], run.config.background)
+    dataset = load_dataset(run.record.dataset, run.config.background)
     scores = evaluate(run, dataset, edit)
     rec = scores["reconstruction"]
-    what = "RGB NeRF" if run.field.kind == "rgb" else "RGB through the weights"
+    what = "RGB NeRF" if run.field.kind == RGB else "RGB through the weights"
     print(f"{scores['views']} test views, {scores['seconds_per_view']:.2f} s per view")
     print(f"{what}: PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f}")
     if "edit" in scores:

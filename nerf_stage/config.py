@@ -1,24 +1,85 @@
-"""Training configuration: one dataclass, saved as ``config.json`` beside the checkpoint."""
+"""Training configuration: dataclasses saved as ``config.json`` beside the checkpoint.
+
+``TrainConfig`` holds the settings every backbone shares and one nested dataclass
+per backbone (``GridConfig``, ``MLPConfig``); ``nerf-stage train`` makes one flag
+per field (``palette_core.cli.add_config_arguments``): ``--pretrain-iters``,
+``--grid-voxels``, ``--mlp-samples``, ... No torch here, so that the CLI can be
+built without the ``nerf`` extra.
+"""
 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
+from enum import StrEnum
 from pathlib import Path
 
 from palette_core.errors import InputError
 
-BACKBONES = ("grid", "mlp")
-STRATEGIES = ("two-stage", "traditional", "rgb")
+
+class Backbone(StrEnum):
+    """Radiance-field backbones (``fields.BACKBONES``); each has a nested config of its name."""
+
+    GRID = "grid"
+    MLP = "mlp"
+
+
+class Strategy(StrEnum):
+    """How a weight NeRF is trained (PaletteNeRF, Sec. 3.3)."""
+
+    TWO_STAGE = "two-stage"
+    TRADITIONAL = "traditional"
+    RGB = "rgb"
+
+
+@dataclass
+class GridConfig:
+    """Settings of the ``grid`` backbone (dense voxel grids and a small MLP head)."""
+
+    voxels: int = 96**3
+    """Voxels of the density and feature grids, spread over the scene box."""
+    features: int = 12
+    """Feature channels per voxel of the colour grid."""
+    view_frequencies: int | None = None
+    """Frequencies of the view direction's encoding in the head; None: diffuse."""
+    lr: float = 0.1
+    """Learning rate of the voxel grids (SparseAdam)."""
+    network_lr: float = 1e-3
+    """Adam learning rate of the head."""
+    step_voxels: float = 1.0
+    """Ray-marching step, in voxels."""
+    occupancy_every: int = 16
+    """Iterations between updates of the occupancy grid from the learned density."""
+    warmup_iters: int = 64
+    """Iterations before occupancy is refined from the learned density."""
+
+    def __post_init__(self):
+        _at_least(self, 1, "voxels", "features", "occupancy_every")
+        _at_least(self, 0, "warmup_iters")
+        _positive(self, "lr", "network_lr", "step_voxels")
+
+
+@dataclass
+class MLPConfig:
+    """Settings of the ``mlp`` backbone (the paper's vanilla NeRF)."""
+
+    samples: int = 96
+    """Samples per ray, evenly across the scene box."""
+    network_lr: float = 5e-4
+    """Adam learning rate."""
+
+    def __post_init__(self):
+        _at_least(self, 1, "samples")
+        _positive(self, "network_lr")
 
 
 @dataclass
 class TrainConfig:
     """How to train one weight NeRF (defaults suit the ``grid`` backbone on a CPU)."""
 
-    backbone: str = "grid"
+    backbone: Backbone = Backbone.GRID
     """``grid`` (dense voxel grids, fast on CPUs) or ``mlp`` (the paper's vanilla NeRF)."""
-    strategy: str = "two-stage"
+    strategy: Strategy = Strategy.TWO_STAGE
     """``two-stage`` (RGB pretrain, then weights), ``traditional`` (weights from scratch),
     or ``rgb`` (an RGB NeRF only, the baseline)."""
     pretrain_iters: int = 800
@@ -28,29 +89,11 @@ class TrainConfig:
     """F: weight iterations of ``two-stage`` with the density part frozen."""
     batch_rays: int = 4096
     """Rays per iteration."""
-    lr: float = 0.0
-    """Adam learning rate of the networks; 0 picks the backbone's (grid 1e-3, mlp 5e-4)."""
-    grid_lr: float = 0.1
-    """Learning rate of the voxel grids (``grid`` only)."""
-    grid_voxels: int = 96**3
-    """Voxels of the density and feature grids (``grid``), spread over the scene box."""
-    grid_features: int = 12
-    """Feature channels per voxel of the colour grid (``grid``)."""
-    grid_view_frequencies: int | None = None
-    """Frequencies of the view direction's encoding in the ``grid`` head; None: diffuse."""
     head_width: int = 128
-    """Width of the last hidden layer (the paper's 128/256/512 ablation for ``mlp``)."""
-    step_voxels: float = 1.0
-    """Ray-marching step of the ``grid`` backbone, in voxels."""
-    mlp_samples: int = 96
-    """Samples per ray of the ``mlp`` backbone."""
+    """Width of the last hidden layer (the paper's 128/256/512 ablation)."""
     occupancy_voxels: int = 64**3
     """Cells of the occupancy grid that lets empty space be skipped (the visual hull of the
-    training views; the ``grid`` backbone refines it from its density)."""
-    occupancy_every: int = 16
-    """Iterations between occupancy updates (``grid``)."""
-    warmup_iters: int = 64
-    """Iterations before occupancy is refined from the learned density (``grid``)."""
+    training views, refined from the density by backbones that ask for it)."""
     opacity_weight: float = 0.1
     """Weight of the L2 loss between the accumulated opacity and the images' alpha, while the
     density trains: it clears fog from space that few rays constrain."""
@@ -60,29 +103,23 @@ class TrainConfig:
     """Seed of the weight initialisation, ray batches and sample jitter."""
     checkpoint_every: int = 500
     """Iterations between checkpoints."""
+    grid: GridConfig = field(default_factory=GridConfig)
+    """Settings of the ``grid`` backbone."""
+    mlp: MLPConfig = field(default_factory=MLPConfig)
+    """Settings of the ``mlp`` backbone."""
 
     def __post_init__(self):
+        self.backbone = _member(Backbone, self.backbone, "backbone")
+        self.strategy = _member(Strategy, self.strategy, "strategy")
         self.background = tuple(float(c) for c in self.background)
-        if self.backbone not in BACKBONES:
-            raise InputError(f"backbone must be one of {', '.join(BACKBONES)}, "
-                             f"got {self.backbone!r}")
-        if self.strategy not in STRATEGIES:
-            raise InputError(f"strategy must be one of {', '.join(STRATEGIES)}, "
-                             f"got {self.strategy!r}")
-        for name in ("pretrain_iters", "finetune_iters", "occupancy_every", "warmup_iters"):
-            if getattr(self, name) < 0:
-                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("batch_rays", "grid_voxels", "grid_features", "head_width", "mlp_samples",
-                     "occupancy_voxels", "checkpoint_every"):
-            if getattr(self, name) < 1:
-                raise InputError(f"{name} must be >= 1, got {getattr(self, name)}")
+        _at_least(self, 0, "pretrain_iters", "finetune_iters")
+        _at_least(self, 1, "batch_rays", "head_width", "occupancy_voxels", "checkpoint_every")
         if self.pretrain_iters + self.finetune_iters == 0:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
-        if self.strategy == "two-stage" and self.finetune_iters == 0:
+        if self.strategy == Strategy.TWO_STAGE and self.finetune_iters == 0:
             raise InputError("the two-stage strategy needs finetune_iters > 0")
-        if not (self.step_voxels > 0 and self.grid_lr > 0 and self.lr >= 0
-                and self.opacity_weight >= 0):
-            raise InputError("step_voxels and grid_lr must be > 0, lr and opacity_weight >= 0")
+        if not self.opacity_weight >= 0:
+            raise InputError(f"opacity_weight must be >= 0, got {self.opacity_weight}")
         if len(self.background) != 3 or not all(0 <= c <= 1 for c in self.background):
             raise InputError(f"background must be three numbers in [0, 1], got {self.background}")
 
@@ -91,20 +128,97 @@ class TrainConfig:
         return self.pretrain_iters + self.finetune_iters
 
     @property
-    def network_lr(self) -> float:
-        return self.lr or {"grid": 1e-3, "mlp": 5e-4}[self.backbone]
+    def backbone_config(self) -> GridConfig | MLPConfig:
+        """The nested settings of the chosen backbone."""
+        return getattr(self, self.backbone)
+
+    def to_dict(self) -> dict:
+        """Plain JSON types only (strings for the enums), as saved in config.json."""
+        return json.loads(json.dumps(asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "config") -> TrainConfig:
+        """The config of ``to_dict``; ``source`` names the file in errors.
+
+        Raises
+        ------
+        InputError
+            On unknown fields or invalid values.
+        """
+        if not isinstance(data, dict):
+            raise InputError(f"{source}: expected an object of config fields")
+        data = _nest_flat_fields(data)
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(data) - set(known))
+        if unknown:
+            raise InputError(f"{source}: unknown config fields {', '.join(unknown)}")
+        values = {}
+        for name, value in data.items():
+            nested = _NESTED.get(name)
+            if nested is not None:
+                if not isinstance(value, dict) or set(value) - {f.name for f in fields(nested)}:
+                    raise InputError(f"{source}: {name} must be an object of "
+                                     f"{nested.__name__} fields")
+                value = nested(**value)
+            values[name] = value
+        try:
+            return cls(**values)
+        except TypeError as exc:
+            raise InputError(f"{source}: {exc}") from None
 
     def save(self, path: Path) -> None:
-        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
+        path.write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
     def load(cls, path: Path) -> TrainConfig:
         try:
             data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, RecursionError, json.JSONDecodeError) as exc:
             raise InputError(f"cannot read training config {path}: {exc}") from None
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise InputError(f"{path}: unknown config fields {', '.join(unknown)}")
-        return cls(**data)
+        return cls.from_dict(data, str(path))
+
+
+#: The nested backbone configs of ``TrainConfig``, by field name.
+_NESTED = {"grid": GridConfig, "mlp": MLPConfig}
+
+#: Flat field names of runs saved by version 0.1.0, and where they live now.
+_FLAT_FIELDS = {
+    "grid_voxels": ("grid", "voxels"), "grid_features": ("grid", "features"),
+    "grid_view_frequencies": ("grid", "view_frequencies"), "grid_lr": ("grid", "lr"),
+    "step_voxels": ("grid", "step_voxels"), "occupancy_every": ("grid", "occupancy_every"),
+    "warmup_iters": ("grid", "warmup_iters"), "mlp_samples": ("mlp", "samples"),
+}
+
+
+def _nest_flat_fields(data: dict) -> dict:
+    """Move the flat backbone fields of version 0.1.0 configs into the nested configs; its
+    ``lr`` (0 for "the backbone's default") becomes the chosen backbone's ``network_lr``."""
+    data = dict(data)
+    for flat, (group, name) in _FLAT_FIELDS.items():
+        if flat in data:
+            data[group] = {**data.get(group, {}), name: data.pop(flat)}
+    lr = data.pop("lr", 0)
+    if lr and data.get("backbone") in _NESTED:
+        group = data["backbone"]
+        data[group] = {**data.get(group, {}), "network_lr": lr}
+    return data
+
+
+def _member(enum: type[StrEnum], value, name: str):
+    try:
+        return enum(value)
+    except ValueError:
+        raise InputError(f"{name} must be one of {', '.join(enum)}, got {value!r}") from None
+
+
+def _at_least(config, low: int, *names: str) -> None:
+    for name in names:
+        value = getattr(config, name)
+        if not isinstance(value, int) or value < low:
+            raise InputError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+def _positive(config, *names: str) -> None:
+    for name in names:
+        if not getattr(config, name) > 0:
+            raise InputError(f"{name} must be > 0, got {getattr(config, name)!r}")

@@ -27,20 +27,10 @@ from PIL import Image, UnidentifiedImageError
 from palette_core.errors import InputError
 from palette_core.stack import WeightStack
 
+from .cameras import Intrinsics, focal_length
+
 SPLITS = ("train", "val", "test")
 NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
-
-
-@dataclass
-class Intrinsics:
-    """Pinhole camera shared by all frames: focal lengths and principal point in pixels."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
 
 
 @dataclass
@@ -93,7 +83,7 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> Dataset
         names, splits, poses, angle = _read_blender(root)
         rgba = [_read_rgba(root / name) for name in names]
         height, width = rgba[0].shape[:2]
-        focal = 0.5 * width / math.tan(0.5 * angle)
+        focal = focal_length(width, angle)
         intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
     elif (root / "transforms.json").is_file():
         names, splits, poses, intrinsics = _read_nerfstudio(root)

@@ -1,30 +1,36 @@
-"""Weight renders of a trained run: render once, recolour by palette edits, evaluate.
+"""Weight renders of a trained run: render once, then recolour by palette edits.
 
-A weight render (``render.npz``) holds the composited weights of some views,
-premultiplied by opacity, with the opacity itself. Recolouring it is a matrix
-product, ``image = weights @ basis(palette) + (1 - opacity) background``, and
-never runs the network again.
+A weight render (``render.npz``, format ``palette-render/1``, docs/formats.md)
+holds the composited weights of some views, premultiplied by opacity, with the
+opacity itself. Recolouring it is a matrix product,
+``image = weights @ basis(palette) + (1 - opacity) background``, and never runs
+the network again.
 """
 
 from __future__ import annotations
 
 import json
-import time
+import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from skimage.metrics import structural_similarity
 
+from palette_core.basis import Basis, n_terms, weights_to_rgb
 from palette_core.errors import InputError
-from palette_core.basis import weights_to_rgb
+from palette_core.outputs import atomic_outputs, publish_folder, save_image
+from palette_core.palette_file import read_palette_json
+from palette_core.render import palette_swatch
 from palette_core.stack import WeightStack
 
 from .cameras import orbit_poses
-from .trainer import Run
+from .fields import RGB
+from .run import Run, load_run
 
 RENDER_FILE = "render.npz"
+RENDER_FORMAT = "palette-render/1"
 
 
 @dataclass
@@ -39,7 +45,7 @@ class WeightRender:
     names : list of str
     palette : (K, 3) float64
         The run's palette.
-    basis : str
+    basis : Basis
     order : int
     background : (3,) float64
     source : dict
@@ -50,7 +56,7 @@ class WeightRender:
     opacity: np.ndarray
     names: list[str]
     palette: np.ndarray
-    basis: str
+    basis: Basis
     order: int
     background: np.ndarray
     source: dict
@@ -88,28 +94,51 @@ def render_poses(run: Run, dataset, split: str | None, orbit: int | None):
 def render_weights(run: Run, names: list[str], poses: np.ndarray, source: dict,
                    progress: bool = True) -> WeightRender:
     """Render the run's weights for ``poses`` (runs the network)."""
-    if run.field.kind == "rgb":
+    if run.field.kind == RGB:
         raise InputError("this run was trained on RGB only (strategy 'rgb'): it has no weights")
     weights, opacity = run.render(poses, progress=progress)
     return WeightRender(weights, opacity, names, run.palette, run.basis, run.order,
                         np.asarray(run.config.background, np.float64), source)
 
 
-def write_render(render: WeightRender, path: Path) -> None:
-    np.savez(path, weights=render.weights, opacity=render.opacity,
-             names=np.array(render.names, dtype=str), palette=render.palette,
-             basis=np.array(render.basis), order=np.array(render.order),
-             background=render.background, source=np.array(json.dumps(render.source)))
+def write_render(render: WeightRender, path: str | os.PathLike) -> None:
+    """Write a weight render as NPZ format ``palette-render/1``."""
+    np.savez(path, format=np.array(RENDER_FORMAT), weights=render.weights,
+             opacity=render.opacity, names=np.array(render.names, dtype=str),
+             palette=render.palette, basis=np.array(str(render.basis)),
+             order=np.array(render.order), background=render.background,
+             source=np.array(json.dumps(render.source)))
 
 
-def read_render(path: Path) -> WeightRender:
+def read_render(path: str | os.PathLike) -> WeightRender:
+    """Read and validate a weight render.
+
+    Raises
+    ------
+    InputError
+        If the file is not a ``palette-render/1`` NPZ or a key is missing or malformed.
+    """
     try:
         with np.load(path, allow_pickle=False) as npz:
-            return WeightRender(npz["weights"], npz["opacity"], npz["names"].tolist(),
-                                npz["palette"], str(npz["basis"]), int(npz["order"]),
-                                npz["background"], json.loads(str(npz["source"])))
-    except (OSError, KeyError, ValueError) as exc:
+            if str(npz.get("format", "")) != RENDER_FORMAT:
+                raise InputError(f"{path} is not a weight render (format {RENDER_FORMAT})")
+            weights, opacity, palette = npz["weights"], npz["opacity"], npz["palette"]
+            names, background = npz["names"].tolist(), npz["background"]
+            basis, order = Basis.parse(str(npz["basis"])), int(npz["order"])
+            source = json.loads(str(npz["source"]))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
         raise InputError(f"{path} is not a readable weight render: {exc}") from None
+    n = len(names)
+    m = n_terms(len(palette), basis, order)
+    if (weights.shape[:1] != (n,) or weights.ndim != 4 or weights.shape[-1] != m
+            or opacity.shape != weights.shape[:3] or palette.ndim != 2
+            or palette.shape[1:] != (3,) or background.shape != (3,)
+            or not isinstance(source, dict)):
+        raise InputError(f"{path}: weights, opacity, palette or background have the wrong shape")
+    if not (np.isfinite(weights).all() and np.isfinite(opacity).all()):
+        raise InputError(f"{path}: weights or opacity hold NaN or infinity")
+    return WeightRender(weights, opacity, names, palette.astype(np.float64), basis, order,
+                        background.astype(np.float64), source)
 
 
 def write_gif(path: Path, frames: np.ndarray, seconds_per_frame: float = 0.08) -> None:
@@ -119,77 +148,90 @@ def write_gif(path: Path, frames: np.ndarray, seconds_per_frame: float = 0.08) -
                    duration=int(seconds_per_frame * 1000), loop=0)
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """Peak signal-to-noise ratio in dB of images in [0, 1]."""
-    mse = float(np.mean((np.asarray(a, np.float64) - b) ** 2))
-    return float("inf") if mse == 0 else -10 * np.log10(mse)
+@dataclass
+class EditedRenders:
+    """What ``render_edits`` wrote: one folder (and GIF, for orbits) per label."""
+
+    labels: list[str]
+    views: int
+    reused: bool
+    """The saved weight render was recoloured without running the network."""
 
 
-def image_scores(predicted: np.ndarray, truth: np.ndarray) -> dict:
-    """Mean PSNR and SSIM (scikit-image) of (N, H, W, 3) images against the truth."""
-    return {
-        "psnr": float(np.mean([psnr(p, t) for p, t in zip(predicted, truth)])),
-        "ssim": float(np.mean([structural_similarity(p, t, channel_axis=-1, data_range=1.0)
-                               for p, t in zip(predicted, truth)])),
-    }
+def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
+                 palette_files: list[str] = (), templates: list[str] = (),
+                 split: str = "test", orbit: int | None = None,
+                 force: bool = False, progress: bool = True) -> EditedRenders:
+    """Render a run's weights once into ``out/render.npz`` and recolour them.
 
+    One folder per palette file (``out/<file stem>``), per harmonisation template
+    (``out/harmonized-<template>``, fitted to the rendered weights), or the run's
+    own palette (``out/original``) when neither is given; an orbit also gives
+    ``out/<label>.gif``. A render of the same run and views in ``out`` is reused.
 
-def resimulated_views(scene_meta: dict, palette: np.ndarray, poses: np.ndarray,
-                      background: np.ndarray) -> np.ndarray:
-    """(N, H, W, 3) views of the simulated scene behind a transport stack, re-traced with
-    its editable materials set to ``palette`` and composited like the dataset's PNGs."""
-    from .simulation import load_scene, render_terms, with_overrides, with_palette
-
-    overrides = {k: scene_meta[k] for k in ("order", "spp", "seed", "max_depth")}
-    width, height = scene_meta["resolution"]
-    if width == height:  # a square override; the scene's own size otherwise
-        overrides["resolution"] = width
-    scene = with_overrides(load_scene(scene_meta["scene"]), **overrides)
-    radiance, alpha = render_terms(with_palette(scene, palette), poses, split=False)
-    radiance = radiance[..., 0, :]
-    straight = np.clip(radiance / np.maximum(alpha[..., None], 1e-12), 0, 1)
-    return straight * alpha[..., None] + (1 - alpha[..., None]) * background
-
-
-def rolled_palette(palette: np.ndarray) -> np.ndarray:
-    """The default edit of ``eval``: every palette colour takes the next one's."""
-    return np.roll(palette, -1, axis=0)
-
-
-def evaluate(run: Run, dataset, edit: np.ndarray | None = None,
-             progress: bool = True) -> dict:
-    """Scores of the run on the dataset's test views.
-
-    Returns a dict with ``reconstruction`` (PSNR, SSIM of the RGB through the
-    weights, or of the RGB NeRF, against the test images), the render time per
-    view, and, for runs on simulated transport stacks, ``edit``: the render
-    recoloured with ``edit`` (default ``rolled_palette``) against the scene
-    re-simulated with that palette.
+    Raises
+    ------
+    InputError
+        Before any rendering: an unknown template, a palette of the wrong size, an
+        output that exists (without ``force``), or a saved render of other views.
     """
-    names, poses = render_poses(run, dataset, "test", None)
-    truth = dataset.images[dataset.indices("test")]
-    start = time.perf_counter()
-    values, opacity = run.render(poses, progress=progress)
-    seconds = (time.perf_counter() - start) / len(poses)
-    background = np.asarray(run.config.background, np.float64)
-    scores = {"views": len(poses), "seconds_per_view": seconds}
-    if run.field.kind == "rgb":
-        scores["reconstruction"] = image_scores(
-            np.clip(values + (1 - opacity[..., None]) * background, 0, 1), truth)
-        return scores
-    render = WeightRender(values, opacity, names, run.palette, run.basis, run.order,
-                          background, {})
-    scores["reconstruction"] = image_scores(render.recolor(), truth)
-    scene_meta = run.meta.get("stack_meta", {})
-    if run.basis == "transport" and "scene" in scene_meta:
-        edit = rolled_palette(run.palette) if edit is None else edit
-        start = time.perf_counter()
-        recoloured = render.recolor(edit)
-        scores["recolour_seconds_per_view"] = (time.perf_counter() - start) / len(poses)
-        truth = resimulated_views(scene_meta, edit, poses, background)
-        scores["edit"] = dict(image_scores(recoloured, truth), palette=np.asarray(edit).tolist())
-    return scores
+    from harmonize import TEMPLATES, harmonize_palette, palette_shares
+    from harmonize.batch import BEST
+
+    from .data import load_dataset
+
+    run = load_run(rundir)
+    unknown = [t for t in templates if t != BEST and t not in TEMPLATES]
+    if unknown:
+        raise InputError(f"unknown template {unknown[0]!r}; choose one of "
+                         f"{BEST}, {', '.join(TEMPLATES)}")
+    palettes = {} if palette_files or templates else {"original": run.palette}
+    for path in palette_files:
+        label = Path(path).stem
+        if label in palettes:
+            raise InputError(f"two palette files are named {label}.json: their outputs collide")
+        palettes[label] = read_palette_json(path, k=len(run.palette))
+    views = f"orbit:{orbit}" if orbit is not None else split
+    source = {"run": str(Path(rundir).resolve()), "iteration": run.record.iteration,
+              "views": views}
+    out = Path(out)
+    cache = out / RENDER_FILE
+    render = read_render(cache) if cache.is_file() else None
+    if render is not None and render.source != source and not force:
+        raise InputError(f"{cache} holds another render ({render.source.get('views')} of "
+                         f"{render.source.get('run')}); use --force to replace it")
+    labels = list(palettes) + [f"harmonized-{t}" for t in templates]
+    existing = [str(out / label) for label in labels if (out / label).exists()]
+    if existing and not force:
+        raise InputError(f"output {existing[0]} already exists (use --force to overwrite)")
+    reused = render is not None and render.source == source
+    if not reused:
+        dataset = load_dataset(run.record.dataset, run.config.background)
+        names, poses = render_poses(run, dataset, split, orbit)
+        render = render_weights(run, names, poses, source, progress)
+        with atomic_outputs() as stage:
+            write_render(render, stage(cache))
+    if templates:
+        shares = palette_shares(render.as_stack())
+        for template in templates:
+            palettes[f"harmonized-{template}"] = harmonize_palette(
+                render.palette, shares, template).palette
+    for label, palette in palettes.items():
+        _write_recoloured(render, palette, out / label, orbit is not None, force)
+    return EditedRenders(labels, len(render.names), reused)
 
 
-__all__ = ["WeightRender", "evaluate", "image_scores", "psnr", "read_render", "render_poses",
-           "render_weights", "resimulated_views", "rolled_palette", "write_gif", "write_render"]
+def _write_recoloured(render: WeightRender, palette: np.ndarray, folder: Path, gif: bool,
+                      force: bool) -> None:
+    """Views recoloured with ``palette`` into ``folder`` (published whole), plus a GIF."""
+    images = render.recolor(palette)
+    with atomic_outputs() as stage, publish_folder(folder, force) as staging:
+        for name, image in zip(render.names, images):
+            save_image(staging / f"{name}.png", image)
+        palette_swatch(palette).save(staging / "palette.png")
+        if gif:
+            write_gif(stage(folder.with_suffix(".gif")), images)
+
+
+__all__ = ["EditedRenders", "WeightRender", "read_render", "render_edits", "render_poses",
+           "render_weights", "write_gif", "write_render"]

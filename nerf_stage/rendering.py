@@ -21,7 +21,10 @@ import numpy as np
 import torch
 from scipy.ndimage import maximum_filter
 
-from .data import Intrinsics
+from torch import nn
+
+from .cameras import Intrinsics
+from .fields.base import RaySampling
 
 TERMINATION = 1e-4  # samples behind less transmittance skip the colour part
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
@@ -53,23 +56,6 @@ class SceneBox:
 
     def to_dict(self) -> dict:
         return {"centre": self.centre.tolist(), "half": self.half.tolist()}
-
-
-def camera_rays(pose: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """World rays through pixel centres of one camera (OpenGL axes: looks along -z).
-
-    Returns
-    -------
-    origins, directions : (H, W, 3) float64
-        Directions are unit vectors.
-    """
-    j, i = np.meshgrid(np.arange(intrinsics.height) + 0.5, np.arange(intrinsics.width) + 0.5,
-                       indexing="ij")
-    local = np.stack([(i - intrinsics.cx) / intrinsics.fx, -(j - intrinsics.cy) / intrinsics.fy,
-                      -np.ones_like(i)], axis=-1)
-    directions = local @ pose[:3, :3].T
-    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
-    return np.broadcast_to(pose[:3, 3], directions.shape).copy(), directions
 
 
 def scene_box(poses: np.ndarray, intrinsics: Intrinsics, alpha: np.ndarray,
@@ -142,24 +128,28 @@ def box_intersection(origins: torch.Tensor, directions: torch.Tensor, extent: to
     return near, torch.maximum(far, near)
 
 
-class OccupancyGrid:
+class OccupancyGrid(nn.Module):
     """Coarse boolean grid over the normalised box: samples in empty cells are never evaluated.
 
     Starts from the visual hull of the training views; once the field has
     learned some density, ``update`` keeps the carved cells whose density (an
     exponential moving maximum over random points in each cell) makes one
     step through it at least ``OCCUPIED_ALPHA`` opaque, or as opaque as the mean
-    cell while the density is still low everywhere.
+    cell while the density is still low everywhere. The grids are buffers:
+    ``hull``, ``occupied`` and ``density`` are saved in ``state_dict``; ``extent``
+    and ``resolution`` follow from the config and are not.
     """
 
     def __init__(self, extent: torch.Tensor, cells: int):
+        super().__init__()
         per_unit = (cells / float(torch.prod(2 * extent))) ** (1 / 3)
-        self.extent = extent
-        self.resolution = torch.clamp(torch.round(2 * extent * per_unit), 1).long()
-        shape = tuple(self.resolution.tolist())
-        self.hull = torch.ones(shape, dtype=torch.bool)
-        self.occupied = self.hull.clone()
-        self.density = torch.zeros(shape)
+        resolution = torch.clamp(torch.round(2 * extent * per_unit), 1).long()
+        shape = tuple(resolution.tolist())
+        self.register_buffer("extent", extent, persistent=False)
+        self.register_buffer("resolution", resolution, persistent=False)
+        self.register_buffer("hull", torch.ones(shape, dtype=torch.bool))
+        self.register_buffer("occupied", self.hull.clone())
+        self.register_buffer("density", torch.zeros(shape))
 
     def carve(self, box: SceneBox, poses: np.ndarray, intrinsics: Intrinsics,
               alpha: np.ndarray) -> None:
@@ -172,11 +162,6 @@ class OccupancyGrid:
     def cell(self) -> float:
         """Largest cell size in normalised units."""
         return float((2 * self.extent / self.resolution).max())
-
-    def to(self, device) -> OccupancyGrid:
-        for name in ("extent", "resolution", "hull", "occupied", "density"):
-            setattr(self, name, getattr(self, name).to(device))
-        return self
 
     def lookup(self, x: torch.Tensor) -> torch.Tensor:
         """(P,) bool: points inside the box and in an occupied cell."""
@@ -197,13 +182,6 @@ class OccupancyGrid:
         alpha = 1 - torch.exp(-self.density * step)
         threshold = min(OCCUPIED_ALPHA, float(alpha[self.hull].mean()))
         self.occupied = self.hull & (alpha >= threshold)
-
-    def state_dict(self) -> dict:
-        return {"hull": self.hull, "occupied": self.occupied, "density": self.density}
-
-    def load_state_dict(self, state: dict) -> None:
-        for name in ("hull", "occupied", "density"):
-            setattr(self, name, state[name].to(self.extent.device))
 
 
 def composite(sigma: torch.Tensor, deltas: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -259,13 +237,12 @@ class Samples:
 
 
 def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.Tensor,
-               n_samples: int | None, step: float | None,
-               generator: torch.Generator | None = None) -> Samples:
+               sampling: RaySampling, generator: torch.Generator | None = None) -> Samples:
     """Sample rays and run the density part where the occupancy grid is occupied.
 
-    Samples are spaced ``step`` apart from where a ray enters the box (grids), or
-    ``n_samples`` evenly across the box (MLPs); ``generator`` jitters them
-    (training). Samples in empty cells skip the field.
+    Samples are spaced ``sampling.step`` apart from where a ray enters the box
+    (grids), or ``sampling.count`` evenly across the box (MLPs); ``generator``
+    jitters them (training). Samples in empty cells skip the field.
 
     Parameters
     ----------
@@ -273,11 +250,12 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         Normalised coordinates; unit directions.
     """
     near, far = box_intersection(origins, directions, occupancy.extent)
-    if step is None:
+    if sampling.step is None:
+        n_samples = sampling.count
         deltas = (far - near) / n_samples  # (R,)
     else:
-        n_samples = max(1, int(torch.ceil((far - near).max() / step)))
-        deltas = torch.full_like(near, step)
+        n_samples = max(1, int(torch.ceil((far - near).max() / sampling.step)))
+        deltas = torch.full_like(near, sampling.step)
     offsets = torch.arange(n_samples, device=near.device, dtype=near.dtype)
     offsets = offsets + (0.5 if generator is None else
                          torch.rand(len(near), 1, generator=generator, device=near.device))
@@ -294,7 +272,7 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
 
 
 def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
-                directions: torch.Tensor, n_samples: int | None, step: float | None,
+                directions: torch.Tensor, sampling: RaySampling,
                 generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite the field's outputs along rays (``march_rays``); samples behind
     ``TERMINATION`` transmittance skip the colour part (``Samples.visible``).
@@ -306,7 +284,6 @@ def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
     acc : (R,)
         Accumulated opacity.
     """
-    samples = march_rays(field, occupancy, origins, directions, n_samples, step,
-                         generator).visible()
+    samples = march_rays(field, occupancy, origins, directions, sampling, generator).visible()
     values = field.colour(samples.h, directions[samples.ray])  # (P, C)
     return samples.composite(values), samples.opacity

@@ -11,19 +11,21 @@ torch = pytest.importorskip("torch")
 from nerf_stage import trainer as trainer_module  # noqa: E402
 from nerf_stage.cameras import orbit_poses, rig_poses  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
-from nerf_stage.config import TrainConfig  # noqa: E402
+from nerf_stage.config import GridConfig, MLPConfig, TrainConfig  # noqa: E402
 from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.editing import read_render  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
 from nerf_stage.rendering import composite, scene_box, visual_hull  # noqa: E402
-from nerf_stage.trainer import CHECKPOINT, load_run, train  # noqa: E402
+from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.trainer import train  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
 from palette_core.stack import read_stack  # noqa: E402
 
 from .helpers import expect_error  # noqa: E402
 
-TINY = {"grid_voxels": 12**3, "occupancy_voxels": 6**3, "batch_rays": 64, "mlp_samples": 8,
-        "head_width": 16, "warmup_iters": 1, "occupancy_every": 1, "checkpoint_every": 2}
+TINY = {"occupancy_voxels": 6**3, "batch_rays": 64, "head_width": 16, "checkpoint_every": 2,
+        "grid": GridConfig(voxels=12**3, warmup_iters=1, occupancy_every=1),
+        "mlp": MLPConfig(samples=8)}
 
 
 def tiny_config(**changes) -> TrainConfig:
@@ -52,7 +54,7 @@ def still_life(tmp_path_factory):
 def trained(root, config, rundir, **kwargs):
     dataset = load_dataset(root, config.background)
     return train(config, dataset, read_stack(root / "weights.npz"), rundir, progress=False,
-                 meta={"dataset": str(root)}, **kwargs)
+                 **kwargs)
 
 
 # --- compositing and fields ------------------------------------------------------------------
@@ -162,21 +164,21 @@ def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_p
 def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch):
     config = tiny_config(pretrain_iters=3, finetune_iters=3)
     whole = trained(cornell, config, tmp_path / "whole")
-    save = trainer_module._save_checkpoint
+    save = trainer_module.save_checkpoint
 
-    def save_then_stop(run, path, optimisers, generator, iteration, log):
-        save(run, path, optimisers, generator, iteration, log)
-        if iteration == 4:
+    def save_then_stop(run, path, optimisers, generator):
+        save(run, path, optimisers, generator)
+        if run.record.iteration == 4:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(trainer_module, "_save_checkpoint", save_then_stop)
+    monkeypatch.setattr(trainer_module, "save_checkpoint", save_then_stop)
     with pytest.raises(KeyboardInterrupt):
         trained(cornell, config, tmp_path / "resumed")
-    monkeypatch.setattr(trainer_module, "_save_checkpoint", save)
+    monkeypatch.setattr(trainer_module, "save_checkpoint", save)
     resumed = trained(cornell, config, tmp_path / "resumed", resume=True)
     for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()):
         assert torch.equal(a, b)
-    assert [e["loss"] for e in whole.meta["log"]] == [e["loss"] for e in resumed.meta["log"]]
+    assert [e["loss"] for e in whole.record.log] == [e["loss"] for e in resumed.record.log]
 
 
 # --- command line ----------------------------------------------------------------------------
@@ -238,4 +240,4 @@ def test_cli_errors(cornell, cornell_run, still_life, tmp_path, capsys):
     shutil.copytree(rundir, copy)
     expect_error(main, train_args[:5] + [str(copy), "--resume"], "another config", capsys)
     assert not (tmp_path / "x").exists()
-    assert load_run(rundir).meta["iteration"] == 4 and (rundir / CHECKPOINT).is_file()
+    assert load_run(rundir).record.iteration == 4 and (rundir / CHECKPOINT).is_file()

@@ -5,7 +5,7 @@ editable materials they hit, and Blender-format datasets with transport weights.
 from .scene import BUILTIN_SCENES, Scene, load_scene, parse_scene
 from .simulate import (
     Simulation,
-    check_outdir,
+    SimulationRecord,
     render_terms,
     simulate,
     view_poses,
@@ -18,7 +18,7 @@ __all__ = [
     "BUILTIN_SCENES",
     "Scene",
     "Simulation",
-    "check_outdir",
+    "SimulationRecord",
     "load_scene",
     "parse_scene",
     "render_terms",

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +20,7 @@ from tqdm import tqdm
 
 from palette_core import __version__
 from palette_core.errors import InputError
-from palette_core.outputs import save_image
+from palette_core.outputs import publish_folder, save_image
 from palette_core.basis import Basis, transport_basis
 from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, write_stack
@@ -67,6 +65,66 @@ class Simulation:
     palette: np.ndarray
     order: int
     seconds: float
+
+
+@dataclass
+class SimulationRecord:
+    """How a simulated scene was rendered, kept in its weight stack's meta so that the scene
+    can be traced again with an edited palette (``evaluation.resimulated_views``).
+
+    Attributes
+    ----------
+    scene : str
+        A built-in scene's name or the scene file's absolute path.
+    order, max_depth, spp, seed : int
+    resolution : [width, height]
+    views : dict of str to int
+        Views per split.
+    seconds : float
+        Path-tracing time.
+    version : str
+        Package version that simulated it.
+    """
+
+    scene: str
+    order: int
+    max_depth: int
+    spp: int
+    seed: int
+    resolution: list[int]
+    views: dict[str, int]
+    seconds: float
+    version: str = __version__
+
+    def to_meta(self) -> dict:
+        """The stack meta keys (docs/formats.md)."""
+        return {"version": self.version, "scene": self.scene, "order": self.order,
+                "max_depth": self.max_depth, "spp": self.spp, "seed": self.seed,
+                "resolution": list(self.resolution), "views": self.views,
+                "seconds": self.seconds}
+
+    @classmethod
+    def from_meta(cls, meta: dict) -> SimulationRecord | None:
+        """The record in a stack's meta; None for stacks that were not simulated.
+
+        Raises
+        ------
+        InputError
+            If the meta names a scene but its other keys are missing or malformed.
+        """
+        if "scene" not in meta:
+            return None
+        try:
+            return cls(**{f.name: meta[f.name] for f in fields(cls) if f.name in meta})
+        except TypeError as exc:
+            raise InputError(f"stack meta of a simulated scene is incomplete: {exc}") from None
+
+    def applied_to(self, scene: Scene) -> Scene:
+        """``scene`` with this record's order, sampling, seed and (square) resolution."""
+        width, height = self.resolution
+        return with_overrides(scene, order=self.order, spp=self.spp, seed=self.seed,
+                              max_depth=self.max_depth,
+                              resolution=width if width == height else None)
 
 
 def with_overrides(scene: Scene, order=None, spp=None, resolution=None, views=None,
@@ -201,43 +259,17 @@ def write_dataset(sim: Simulation, scene: Scene, outdir: str | os.PathLike, spec
                   force: bool = False) -> list[str]:
     """Write ``sim`` as a Blender-format dataset into ``outdir``, atomically.
 
-    The folder is built beside ``outdir`` and renamed onto it at the end; an
-    existing non-empty ``outdir`` is replaced only with ``force``.
+    The folder is built beside ``outdir`` and renamed onto it at the end
+    (``outputs.publish_folder``); an existing non-empty ``outdir`` is replaced only
+    with ``force``.
 
     Returns
     -------
     list of str
         The files written, relative to ``outdir``.
     """
-    outdir = Path(outdir)
-    check_outdir(outdir, force)
-    outdir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
-    try:
-        written = _write_files(sim, scene, staging, spec)
-        if outdir.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.old.", dir=outdir.parent))
-            os.replace(outdir, trash / "old")
-            os.replace(staging, outdir)
-            shutil.rmtree(trash)
-        else:
-            os.replace(staging, outdir)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return written
-
-
-def check_outdir(outdir: str | os.PathLike, force: bool) -> None:
-    """Fail early if ``outdir`` is a file, a non-empty folder (without ``force``) or unwritable."""
-    outdir = Path(outdir)
-    if outdir.exists() and not outdir.is_dir():
-        raise InputError(f"output {outdir} exists and is not a folder")
-    if outdir.is_dir() and any(outdir.iterdir()) and not force:
-        raise InputError(f"output folder {outdir} is not empty (use --force to replace it)")
-    parent = next(p for p in [outdir.parent, *outdir.parent.parents] if p.exists())
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"cannot write output {outdir}: {parent} is not a writable folder")
+    with publish_folder(outdir, force) as staging:
+        return _write_files(sim, scene, staging, spec)
 
 
 def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[str]:
@@ -258,16 +290,11 @@ def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[s
     if sim.weights is None:
         return written
     render, cam = scene.render, scene.camera
-    meta = {
-        "version": __version__,
-        "scene": spec,
-        "order": sim.order, "max_depth": render.max_depth, "spp": render.spp,
-        "seed": render.seed, "resolution": [cam.width, cam.height], "views": cam.views,
-        "seconds": round(sim.seconds, 3),
-    }
+    record = SimulationRecord(spec, sim.order, render.max_depth, render.spp, render.seed,
+                              [cam.width, cam.height], cam.views, round(sim.seconds, 3))
     stack = WeightStack(palette=sim.palette, weights=list(sim.weights.astype(np.float32)),
-                        names=sim.names, method="simulated", basis="transport",
-                        order=sim.order, meta=meta)
+                        names=sim.names, method="simulated", basis=Basis.TRANSPORT,
+                        order=sim.order, meta=record.to_meta())
     write_stack(stack, root / "weights.npz")
     materials = {"materials": [m.name for m in scene.palette_materials],
                  "palette": palette_to_hex(sim.palette)}

@@ -1,11 +1,16 @@
-"""Shared command-line plumbing: one-line errors, exit code 2, flags for method options."""
+"""Shared command-line plumbing: one-line errors and exit code 2, flags generated from
+method options and config dataclasses."""
 
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
+import enum
 import inspect
 import re
 import sys
+import textwrap
 import typing
 from collections.abc import Callable
 
@@ -63,3 +68,55 @@ def _docstring_entry(function: Callable, name: str) -> str:
     doc = inspect.getdoc(function) or ""
     match = re.search(rf"^{name} :.*\n((?:    .*\n?)+)", doc, re.MULTILINE)
     return " ".join(match.group(1).split()) if match else name
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
+    """One flag per field of dataclass ``cls``, nested dataclasses prefixed by their field name
+    (``TrainConfig.grid.voxels`` -> ``--grid-voxels``), typed by the annotations, documented
+    by the field docstrings, defaulting to the field defaults. Enums give choices; tuples
+    take one value per element.
+    """
+    hints = typing.get_type_hints(cls)
+    docs = _field_docstrings(cls)
+    for f in dataclasses.fields(cls):
+        kind, name = hints[f.name], prefix + f.name
+        if dataclasses.is_dataclass(kind):
+            add_config_arguments(parser, kind, name + "_")
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        options = {"dest": name, "default": default,
+                   "help": f"{docs.get(f.name, '').replace('``', '')} (default {_shown(default)})"}
+        if typing.get_origin(kind) is tuple:
+            options |= {"type": typing.get_args(kind)[0], "nargs": len(typing.get_args(kind))}
+        elif isinstance(kind, type) and issubclass(kind, enum.Enum):
+            options |= {"type": str, "choices": [str(member) for member in kind]}
+        else:  # X or X | None: the first type
+            options["type"] = next(t for t in typing.get_args(kind) or (kind,) if t is not None)
+        parser.add_argument("--" + name.replace("_", "-"), **options)
+
+
+def config_from_args(cls: type, args: argparse.Namespace, prefix: str = ""):
+    """The dataclass ``cls`` built from the flags of ``add_config_arguments``."""
+    values = {}
+    for f in dataclasses.fields(cls):
+        kind = typing.get_type_hints(cls)[f.name]
+        values[f.name] = (config_from_args(kind, args, prefix + f.name + "_")
+                          if dataclasses.is_dataclass(kind) else getattr(args, prefix + f.name))
+    return cls(**values)
+
+
+def _field_docstrings(cls: type) -> dict[str, str]:
+    """The string literal under each field of a dataclass's source, on one line."""
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    docs = {}
+    for field, doc in zip(body, body[1:]):
+        if (isinstance(field, ast.AnnAssign) and isinstance(doc, ast.Expr)
+                and isinstance(doc.value, ast.Constant) and isinstance(doc.value.value, str)):
+            docs[field.target.id] = " ".join(doc.value.value.split())
+    return docs
+
+
+def _shown(default) -> str:
+    if isinstance(default, tuple):
+        return " ".join(map(str, default))
+    return str(default)

@@ -1,0 +1,96 @@
+"""Scores of a trained run: PSNR and SSIM on the test views, and edits against re-simulation.
+
+For runs on simulated transport stacks, an edited palette recolours the weight
+render, and the scene is path traced again with that palette as the ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from skimage.metrics import structural_similarity
+
+from palette_core.basis import Basis
+
+from .editing import WeightRender, render_poses
+from .fields import RGB
+from .run import Run
+from .simulation import SimulationRecord
+
+
+def psnr_from_mse(mse: float) -> float:
+    """Peak signal-to-noise ratio in dB of a mean squared error of values in [0, 1]."""
+    return float("inf") if mse == 0 else -10 * math.log10(mse)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """Peak signal-to-noise ratio in dB of images in [0, 1]."""
+    return psnr_from_mse(float(np.mean((np.asarray(a, np.float64) - b) ** 2)))
+
+
+def image_scores(predicted: np.ndarray, truth: np.ndarray) -> dict:
+    """Mean PSNR and SSIM (scikit-image) of (N, H, W, 3) images against the truth."""
+    return {
+        "psnr": float(np.mean([psnr(p, t) for p, t in zip(predicted, truth)])),
+        "ssim": float(np.mean([structural_similarity(p, t, channel_axis=-1, data_range=1.0)
+                               for p, t in zip(predicted, truth)])),
+    }
+
+
+def resimulated_views(simulation: SimulationRecord, palette: np.ndarray, poses: np.ndarray,
+                      background: np.ndarray) -> np.ndarray:
+    """(N, H, W, 3) views of the simulated scene behind a transport stack, re-traced with
+    its editable materials set to ``palette`` and composited like the dataset's PNGs."""
+    from .simulation import load_scene, render_terms, with_palette
+
+    scene = simulation.applied_to(load_scene(simulation.scene))
+    radiance, alpha = render_terms(with_palette(scene, palette), poses, split=False)
+    radiance = radiance[..., 0, :]
+    straight = np.clip(radiance / np.maximum(alpha[..., None], 1e-12), 0, 1)
+    return straight * alpha[..., None] + (1 - alpha[..., None]) * background
+
+
+def rolled_palette(palette: np.ndarray) -> np.ndarray:
+    """The default edit of ``eval``: every palette colour takes the next one's."""
+    return np.roll(palette, -1, axis=0)
+
+
+def evaluate(run: Run, dataset, edit: np.ndarray | None = None,
+             progress: bool = True) -> dict:
+    """Scores of the run on the dataset's test views.
+
+    Returns a dict with ``reconstruction`` (PSNR, SSIM of the RGB through the
+    weights, or of the RGB NeRF, against the test images), the render time per
+    view, and, for runs on simulated transport stacks, ``edit``: the render
+    recoloured with ``edit`` (default ``rolled_palette``) against the scene
+    re-simulated with that palette.
+    """
+    names, poses = render_poses(run, dataset, "test", None)
+    truth = dataset.images[dataset.indices("test")]
+    start = time.perf_counter()
+    values, opacity = run.render(poses, progress=progress)
+    seconds = (time.perf_counter() - start) / len(poses)
+    background = np.asarray(run.config.background, np.float64)
+    scores = {"views": len(poses), "seconds_per_view": seconds}
+    if run.field.kind == RGB:
+        scores["reconstruction"] = image_scores(
+            np.clip(values + (1 - opacity[..., None]) * background, 0, 1), truth)
+        return scores
+    render = WeightRender(values, opacity, names, run.palette, run.basis, run.order,
+                          background, {})
+    scores["reconstruction"] = image_scores(render.recolor(), truth)
+    simulation = SimulationRecord.from_meta(run.record.stack_meta)
+    if run.basis == Basis.TRANSPORT and simulation is not None:
+        edit = rolled_palette(run.palette) if edit is None else edit
+        start = time.perf_counter()
+        recoloured = render.recolor(edit)
+        scores["recolour_seconds_per_view"] = (time.perf_counter() - start) / len(poses)
+        truth = resimulated_views(simulation, edit, poses, background)
+        scores["edit"] = dict(image_scores(recoloured, truth), palette=np.asarray(edit).tolist())
+    return scores
+
+
+__all__ = ["evaluate", "image_scores", "psnr", "psnr_from_mse", "resimulated_views",
+           "rolled_palette"]

@@ -1,0 +1,215 @@
+"""The run folder of a weight NeRF: its config, its checkpoint, and the trained run itself.
+
+A run folder holds ``config.json`` (the ``TrainConfig``) and ``checkpoint.pt``
+(docs/formats.md): tensors and plain values only, loaded with
+``torch.load(weights_only=True)``, so a checkpoint from elsewhere cannot run code.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from palette_core.basis import Basis, basis_terms
+from palette_core.errors import InputError
+from palette_core.outputs import atomic_outputs
+
+from .cameras import Intrinsics, camera_rays
+from .config import TrainConfig
+from .fields import Field, RaySampling, make_field
+from .rendering import OccupancyGrid, SceneBox, render_rays
+
+CHECKPOINT = "checkpoint.pt"
+CONFIG = "config.json"
+RENDER_CHUNK = 1 << 13  # rays per forward pass when rendering whole views
+_CHECKPOINT_KEYS = ("iteration", "config", "field", "output", "optimisers", "generator",
+                    "occupancy", "box", "intrinsics", "palette", "basis", "order", "meta", "log")
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+@dataclass
+class RunRecord:
+    """Where a run came from and how far it got (saved in the checkpoint).
+
+    Attributes
+    ----------
+    dataset : str
+        Absolute path of the dataset folder.
+    weights : str
+        Path of the weight stack, when known.
+    channels : int
+        M, the weight channels of the stack.
+    stack_meta : dict
+        The stack's meta (``simulation.SimulationRecord`` keys for simulated scenes).
+    iteration : int
+        Iterations trained.
+    log : list of dict
+        Per iteration: ``iteration``, ``seconds``, ``loss``, ``psnr`` (batch), ``stage``.
+    """
+
+    dataset: str
+    weights: str = ""
+    channels: int = 0
+    stack_meta: dict = field(default_factory=dict)
+    iteration: int = 0
+    log: list[dict] = field(default_factory=list)
+
+
+@dataclass
+class Run:
+    """A trained (or training) weight NeRF and what is needed to use it.
+
+    Attributes
+    ----------
+    config : TrainConfig
+    field : Field
+    occupancy : OccupancyGrid
+    box : SceneBox
+    intrinsics : Intrinsics
+    palette : (K, 3) float64
+    basis : Basis
+        The field outputs RGB while ``field.kind`` is ``fields.RGB``.
+    order : int
+    record : RunRecord
+    """
+
+    config: TrainConfig
+    field: Field
+    occupancy: OccupancyGrid
+    box: SceneBox
+    intrinsics: Intrinsics
+    palette: np.ndarray
+    basis: Basis
+    order: int
+    record: RunRecord
+
+    @property
+    def terms(self) -> np.ndarray:
+        """(M, 3) colour of each weight channel for the run's palette."""
+        return basis_terms(self.palette, self.basis, self.order)
+
+    @property
+    def sampling(self) -> RaySampling:
+        return self.field.sampling(self.config)
+
+    def render_rays(self, origins, directions, generator=None):
+        """Normalised rays -> ((R, C) values, (R,) opacity)."""
+        return render_rays(self.field, self.occupancy, origins, directions, self.sampling,
+                           generator)
+
+    @torch.no_grad()
+    def render(self, poses: np.ndarray, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Render whole views.
+
+        Returns
+        -------
+        values : (N, H, W, C) float32
+            The field's outputs (weights, or RGB) premultiplied by opacity.
+        acc : (N, H, W) float32
+        """
+        self.field.eval()
+        device = self.occupancy.extent.device
+        values, accs = [], []
+        for pose in tqdm(poses, desc="render", unit="view", disable=not progress):
+            origins, directions = normalised_rays(pose, self.intrinsics, self.box, device)
+            outputs = [self.render_rays(o, d) for o, d in zip(origins.split(RENDER_CHUNK),
+                                                              directions.split(RENDER_CHUNK))]
+            shape = (self.intrinsics.height, self.intrinsics.width)
+            values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).cpu().numpy())
+            accs.append(torch.cat([a for _, a in outputs]).reshape(shape).cpu().numpy())
+        return np.stack(values), np.stack(accs)
+
+
+def normalised_rays(pose, intrinsics: Intrinsics, box: SceneBox, device):
+    """(H W, 3) origins in the normalised box and unit directions of one camera, float32."""
+    origins, directions = camera_rays(pose, intrinsics)
+    origins = (origins - box.centre) / box.scale
+    return (torch.as_tensor(origins.reshape(-1, 3), dtype=torch.float32, device=device),
+            torch.as_tensor(directions.reshape(-1, 3), dtype=torch.float32, device=device))
+
+
+def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator) -> None:
+    """Write the run, its optimisers and random state to ``path``, atomically."""
+    record = run.record
+    state = {
+        "iteration": record.iteration,
+        "config": run.config.to_dict(),
+        "field": run.field.state_dict(),
+        "output": run.field.output_state(),
+        "optimisers": [o.state_dict() for o in optimisers],
+        "generator": generator.get_state(),
+        "occupancy": run.occupancy.state_dict(),
+        "box": run.box.to_dict(),
+        "intrinsics": run.intrinsics.__dict__,
+        "palette": run.palette.tolist(),
+        "basis": str(run.basis),
+        "order": run.order,
+        "meta": {"dataset": record.dataset, "weights": record.weights,
+                 "channels": record.channels, "stack_meta": record.stack_meta},
+        "log": record.log,
+    }
+    with atomic_outputs() as stage:
+        torch.save(state, stage(path))
+
+
+def read_checkpoint(path: Path) -> dict:
+    """The checkpoint's state, loaded without running code (``weights_only=True``).
+
+    Raises
+    ------
+    InputError
+        If there is no checkpoint, it cannot be read, or a key is missing.
+    """
+    if not path.is_file():
+        raise InputError(f"{path.parent} holds no checkpoint ({CHECKPOINT}): train it first")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a damaged or unsafe file
+        raise InputError(f"cannot read checkpoint {path}: {str(exc).splitlines()[0]}") from None
+    missing = [key for key in _CHECKPOINT_KEYS if not isinstance(state, dict) or key not in state]
+    if missing:
+        raise InputError(f"checkpoint {path} lacks {', '.join(missing)}")
+    return state
+
+
+def run_record(state: dict) -> RunRecord:
+    """The ``RunRecord`` of a checkpoint's state."""
+    meta = state["meta"]
+    return RunRecord(meta.get("dataset", ""), meta.get("weights", ""), meta.get("channels", 0),
+                     meta.get("stack_meta", {}), state["iteration"], state["log"])
+
+
+def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> Run:
+    """The trained run in ``rundir``.
+
+    Raises
+    ------
+    InputError
+        If there is no readable checkpoint.
+    """
+    device = device or default_device()
+    path = Path(rundir) / CHECKPOINT
+    state = read_checkpoint(path)
+    try:
+        config = TrainConfig.from_dict(state["config"], str(path))
+        box = SceneBox(np.array(state["box"]["centre"]), np.array(state["box"]["half"]))
+        extent = torch.as_tensor(box.extent, dtype=torch.float32)
+        output = state["output"]
+        field = make_field(config, extent, output["kind"], output["channels"])
+        field.load_state_dict(state["field"])
+        occupancy = OccupancyGrid(extent, config.occupancy_voxels)
+        occupancy.load_state_dict(state["occupancy"])
+        basis = Basis.parse(state["basis"])
+        return Run(config, field.to(device), occupancy.to(device), box,
+                   Intrinsics(**state["intrinsics"]), np.array(state["palette"], np.float64),
+                   basis, int(state["order"]), run_record(state))
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"checkpoint {path} is malformed: {str(exc).splitlines()[0]}") from None
