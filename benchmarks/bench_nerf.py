@@ -36,8 +36,10 @@ from bench_simulate import EDITED
 from nerf_stage.cli import main as nerf_stage
 from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
-from nerf_stage.editing import evaluate
-from nerf_stage.trainer import CHECKPOINT, CONFIG, load_run, train
+from nerf_stage.evaluation import evaluate
+from nerf_stage.run import CHECKPOINT, CONFIG, load_run
+from nerf_stage.trainer import train
+from palette_core.basis import Basis
 from palette_core.cli.decompose import main as decompose
 from palette_core.stack import read_stack
 
@@ -63,13 +65,13 @@ def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: P
     done = (rundir / CHECKPOINT).is_file() and (rundir / CONFIG).is_file() and \
         TrainConfig.load(rundir / CONFIG) == config
     dataset = load_dataset(root, config.background)
-    if done and load_run(rundir, "cpu").meta["iteration"] == config.total_iters:
+    if done and load_run(rundir, "cpu").record.iteration == config.total_iters:
         run = load_run(rundir)
     else:
         run = train(config, dataset, read_stack(stack), rundir, resume=done,
-                    meta={"dataset": str(root.resolve())})
-    log = run.meta["log"]
-    edit = EDITED if run.basis == "transport" else None
+                    weights_path=str(stack.resolve()))
+    log = run.record.log
+    edit = EDITED if run.basis == Basis.TRANSPORT else None
     scores = evaluate(run, dataset, edit, progress=False)
     scores.update(name=name, seconds=log[-1]["seconds"], iterations=len(log),
                   seconds_per_iter=log[-1]["seconds"] / len(log))

@@ -31,7 +31,7 @@ from nerf_stage.simulation import (
     with_overrides,
     with_palette,
 )
-from palette_core.basis import weights_to_rgb
+from palette_core.basis import Basis, weights_to_rgb
 
 EDITED = np.array([[0.1, 0.45, 0.2],  # red wall -> green
                    [0.7, 0.1, 0.1],  # green wall -> red
@@ -78,7 +78,7 @@ def orders_table(n_views: int, depth: int, out: Path) -> None:
         stack_mb = n_full * base.camera.width * base.camera.height * m * 4 / 1e6
         rmse = 255 * np.sqrt(np.mean((np.clip(sim.radiance, 0, 1) - ref_clipped) ** 2))
         left_out = 1 - sim.radiance.sum() / reference.sum()
-        recoloured[order] = weights_to_rgb(sim.weights, EDITED, "transport", order)
+        recoloured[order] = weights_to_rgb(sim.weights, EDITED, Basis.TRANSPORT, order)
         edit_rmse = 255 * np.sqrt(np.mean((np.clip(recoloured[order], 0, 1)
                                            - np.clip(edited_truth, 0, 1)) ** 2))
         print(f"{order:>5} {m:>5} {seconds:>8.2f} {stack_mb:>9.1f} {rmse:>7.2f} "

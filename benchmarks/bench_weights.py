@@ -20,8 +20,7 @@ from pathlib import Path
 import numpy as np
 import skimage.data
 
-from palette_core import ColourSet, LoadedImage, extract_palette
-from palette_core.decompose import WEIGHT_METHODS
+from palette_core import WEIGHT_METHODS, ColourSet, LoadedImage, extract_palette, image_weights
 
 PHOTOS = ["astronaut", "coffee", "chelsea", "rocket"]
 
@@ -39,7 +38,7 @@ def measure(
     Path("/proc/self/clear_refs").write_text("5")  # reset the peak resident set
     before = _memory_kib("VmRSS")
     start = time.perf_counter()
-    (weights,) = WEIGHT_METHODS[method](colour_set, [image], poly)
+    (weights,) = image_weights(colour_set, poly, method)
     seconds = time.perf_counter() - start
     peak_mib = (_memory_kib("VmHWM") - before) / 1024
     flat = weights.reshape(-1, weights.shape[-1]).astype(np.float64)

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from scipy.ndimage import maximum_filter
-
 from torch import nn
 
 from .cameras import Intrinsics

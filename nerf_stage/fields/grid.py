@@ -11,8 +11,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from palette_core.basis import Basis
-
 from .base import RGB, Field, RaySampling, positional_encoding
 
 GRID_DENSITY_SHIFT = -4.0  # softplus(-4) ~ 0.02 per voxel: below the occupancy threshold
@@ -37,6 +35,7 @@ class GridField(Field):
 
     Examples
     --------
+    >>> from palette_core.basis import Basis
     >>> field = GridField([1.0, 0.5, 1.0], 1000, 4, kind=Basis.TRANSPORT, channels=6)
     >>> field.resolution.tolist()
     [13, 6, 13]

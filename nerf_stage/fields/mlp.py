@@ -13,8 +13,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from palette_core.basis import Basis
-
 from .base import RGB, Field, RaySampling, positional_encoding
 
 
@@ -24,6 +22,7 @@ class MLPField(Field):
 
     Examples
     --------
+    >>> from palette_core.basis import Basis
     >>> field = MLPField(kind=Basis.ADDITIVE, channels=5)
     >>> sigma, h = field.density(torch.zeros(2, 3))
     >>> [round(s, 5) for s in field.colour(h, torch.tensor([[0.0, 0.0, 1.0]] * 2)).sum(-1).tolist()]

@@ -8,12 +8,11 @@ rays test first.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from math import comb
+from typing import NamedTuple
 
 import numpy as np
 
-from palette_core.basis import transport_terms
+from palette_core.basis import Basis, n_terms, transport_terms
 
 from .kernels import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE
 from .scene import Scene
@@ -22,9 +21,9 @@ PRIM_WIDTH = 18
 BOX_PAD = 1e-6
 
 
-@dataclass
-class SceneArrays:
-    """Geometry, materials and lights as flat arrays (see ``kernels.trace_view``)."""
+class SceneArrays(NamedTuple):
+    """Geometry, materials and lights as flat arrays; the kernel ``kernels.trace_view`` takes
+    the record whole (numba reads named tuples of arrays)."""
 
     prim_kind: np.ndarray  # (P,) int64
     prim_data: np.ndarray  # (P, 18)
@@ -51,7 +50,7 @@ def next_term_table(k: int, order: int) -> np.ndarray:
     """
     terms = transport_terms(k, order)
     index = {term: m for m, term in enumerate(terms)}
-    table = np.full((comb(k + order, order), max(k, 1)), -1, np.int64)
+    table = np.full((n_terms(k, Basis.TRANSPORT, order), max(k, 1)), -1, np.int64)
     for m, term in enumerate(terms):
         for i in range(k):
             table[m, i] = index.get(tuple(sorted(term + (i,))), -1)

@@ -302,12 +302,8 @@ def _albedo(mat, u, v, mat_albedo, mat_texture, mat_tex_scale, tex_info, tex_pix
 
 
 @njit(cache=True, parallel=True)
-def trace_view(
-    c2w, focal, width, height, spp, max_depth, split, seed, view_id,
-    prim_kind, prim_data, prim_mat, groups,
-    mat_albedo, mat_texture, mat_tex_scale, mat_palette, mat_emission, tex_info, tex_pixels,
-    area_lights, point_lights, next_term, out, coverage,
-):
+def trace_view(c2w, focal, width, height, spp, max_depth, split, seed, view_id, scene,
+               next_term, out, coverage):
     """Path trace one view into per-term radiance sums.
 
     Parameters
@@ -317,16 +313,24 @@ def trace_view(
     spp, max_depth : paths per pixel; surface vertices per path (1 = direct light).
     split : bool, sort contributions into transport terms (True) or render RGB (False).
     seed, view_id : the random stream of path s of pixel p depends on these, p and s only.
-    prim_kind (P,), prim_data (P, 18), prim_mat (P,), groups (G, 8) : geometry.
-    mat_albedo (Mt, 3), mat_texture (Mt,), mat_tex_scale (Mt, 2), mat_palette (Mt,)
+    scene : ``geometry.SceneArrays``, a named tuple of the scene's arrays:
+        prim_kind (P,), prim_data (P, 18), prim_mat (P,), groups (G, 8) : geometry.
+        mat_albedo (Mt, 3), mat_texture (Mt,), mat_tex_scale (Mt, 2), mat_palette (Mt,)
         (palette index, -1 for fixed), mat_emission (Mt, 3) : materials.
-    tex_info (T, 3) (offset, height, width), tex_pixels (texels, 3) : textures.
-    area_lights (La, 16) : corner, edge1, edge2, unit normal, area, emitted radiance.
-    point_lights (Lp, 6) : position, intensity.
+        tex_info (T, 3) (offset, height, width), tex_pixels (texels, 3) : textures.
+        area_lights (La, 16) : corner, edge1, edge2, unit normal, area, emitted radiance.
+        point_lights (Lp, 6) : position, intensity.
     next_term (M, K) : transport term after one more hit of material k, -1 past the order.
     out : (H * W, M, 3) zeroed, receives the mean contribution per term.
     coverage : (H * W,) zeroed, receives the fraction of camera rays that hit geometry.
     """
+    prim_kind, prim_data, prim_mat, groups = (
+        scene.prim_kind, scene.prim_data, scene.prim_mat, scene.groups)
+    mat_albedo, mat_texture, mat_tex_scale, mat_palette, mat_emission = (
+        scene.mat_albedo, scene.mat_texture, scene.mat_tex_scale, scene.mat_palette,
+        scene.mat_emission)
+    tex_info, tex_pixels = scene.tex_info, scene.tex_pixels
+    area_lights, point_lights = scene.area_lights, scene.point_lights
     n_pixels = width * height
     grid = int(math.sqrt(spp))
     while (grid + 1) * (grid + 1) <= spp:

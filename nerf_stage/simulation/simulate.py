@@ -19,9 +19,9 @@ import numpy as np
 from tqdm import tqdm
 
 from palette_core import __version__
+from palette_core.basis import Basis, transport_basis
 from palette_core.errors import InputError
 from palette_core.outputs import publish_folder, save_image
-from palette_core.basis import Basis, transport_basis
 from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, write_stack
 
@@ -201,14 +201,9 @@ def render_terms(scene: Scene, poses: np.ndarray, split: bool, progress: bool = 
     alpha = np.zeros((len(poses), cam.height * cam.width))
     for view in tqdm(range(len(poses)), desc=f"simulate {scene.name}", unit="view",
                      disable=not progress):
-        trace_view(
-            np.ascontiguousarray(poses[view], np.float64), focal, cam.width, cam.height,
-            render.spp, render.max_depth, split, render.seed, view,
-            arrays.prim_kind, arrays.prim_data, arrays.prim_mat, arrays.groups,
-            arrays.mat_albedo, arrays.mat_texture, arrays.mat_tex_scale, arrays.mat_palette,
-            arrays.mat_emission, arrays.tex_info, arrays.tex_pixels,
-            arrays.area_lights, arrays.point_lights, table, terms[view], alpha[view],
-        )
+        trace_view(np.ascontiguousarray(poses[view], np.float64), focal, cam.width,
+                   cam.height, render.spp, render.max_depth, split, render.seed, view, arrays,
+                   table, terms[view], alpha[view])
     shape = (len(poses), cam.height, cam.width)
     return terms.reshape(*shape, m, 3), alpha.reshape(shape)
 
