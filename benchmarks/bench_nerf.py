@@ -68,7 +68,7 @@ def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: P
     if done and load_run(rundir, "cpu").record.iteration == config.total_iters:
         run = load_run(rundir)
     else:
-        run = train(config, dataset, read_stack(stack), rundir, resume=done,
+        run = train(config, dataset, read_stack(stack), rundir, resume=done, force=not done,
                     weights_path=str(stack.resolve()))
     log = run.record.log
     edit = EDITED if run.basis == Basis.TRANSPORT else None

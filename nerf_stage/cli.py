@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 from palette_core.cli import ArgumentParser, add_config_arguments, config_from_args, run_cli
-from palette_core.errors import InputError
 from palette_core.outputs import check_outdir
 from palette_core.palette_file import read_palette_json
 
@@ -141,20 +140,14 @@ def _train(args) -> int:
     config = config_from_args(TrainConfig, args)
     data = Path(args.data)
     rundir = Path(args.output or data.with_name(f"{data.name}-{config.backbone}"))
-    checkpoint = rundir / CHECKPOINT
-    if args.resume and not checkpoint.is_file():
-        raise InputError(f"--resume: {rundir} holds no checkpoint")
-    if checkpoint.is_file() and not (args.resume or args.force):
-        raise InputError(f"{rundir} already holds a run (use --resume to continue it or "
-                         "--force to start afresh)")
     stack = read_stack(args.weights)
     dataset = load_dataset(data, config.background)
-    run = train(config, dataset, stack, rundir, resume=args.resume,
+    run = train(config, dataset, stack, rundir, resume=args.resume, force=args.force,
                 weights_path=str(Path(args.weights).resolve()))
     log = run.record.log
     print(f"trained {config.backbone} ({config.strategy}) for {log[-1]['iteration']} "
           f"iterations in {log[-1]['seconds']:.0f} s, last batch PSNR {log[-1]['psnr']:.2f} dB")
-    print(f"wrote {checkpoint}; next: {PROG} render {rundir} -o DIR")
+    print(f"wrote {rundir / CHECKPOINT}; next: {PROG} render {rundir} -o DIR")
     return 0
 
 

@@ -136,6 +136,17 @@ def normalised_rays(pose, intrinsics: Intrinsics, box: SceneBox, device):
             torch.as_tensor(directions.reshape(-1, 3), dtype=torch.float32, device=device))
 
 
+def check_rundir(rundir: Path, resume: bool, force: bool) -> None:
+    """InputError unless ``rundir`` holds a checkpoint exactly when ``resume`` wants one
+    (``force`` starts afresh over one)."""
+    exists = (rundir / CHECKPOINT).is_file()
+    if resume and not exists:
+        raise InputError(f"--resume: {rundir} holds no checkpoint")
+    if exists and not (resume or force):
+        raise InputError(f"{rundir} already holds a run (use --resume to continue it or "
+                         "--force to start afresh)")
+
+
 def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator) -> None:
     """Write the run, its optimisers and random state to ``path``, atomically."""
     record = run.record

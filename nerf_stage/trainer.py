@@ -40,6 +40,7 @@ from .run import (
     CONFIG,
     Run,
     RunRecord,
+    check_rundir,
     default_device,
     normalised_rays,
     read_checkpoint,
@@ -49,8 +50,8 @@ from .run import (
 
 
 def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
-          resume: bool = False, weights_path: str = "", progress: bool = True,
-          device: torch.device | None = None) -> Run:
+          resume: bool = False, force: bool = False, weights_path: str = "",
+          progress: bool = True, device: torch.device | None = None) -> Run:
     """Train (or resume) a weight NeRF and write its run directory.
 
     Parameters
@@ -59,18 +60,21 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         Its ``background`` must be ``config.background``.
     stack : WeightStack
         Weights of the dataset's training frames (``join_weights``).
-    resume : bool
-        Continue from ``rundir``'s checkpoint (same config) instead of starting afresh.
+    resume, force : bool
+        Continue from ``rundir``'s checkpoint (same config), or start afresh over it;
+        without either, a ``rundir`` that holds a checkpoint is an error.
     weights_path : str
         Where the stack came from, recorded in the checkpoint with the dataset's path.
 
     Raises
     ------
     InputError
-        If the weights do not match the dataset or the checkpoint does not match the config.
+        If the weights do not match the dataset, the run folder is not as ``resume`` and
+        ``force`` say, or the checkpoint does not match the config.
     """
     device = device or default_device()
     rundir = Path(rundir)
+    check_rundir(rundir, resume, force)
     weights = join_weights(dataset, stack, "train")  # (n, H, W, M)
     train_ids = dataset.indices("train")
     if stack.basis == Basis.ADDITIVE:
@@ -112,8 +116,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
         if run.field.refines_occupancy and not finetuning:
-            grid = config.grid
-            if it >= grid.warmup_iters and it % grid.occupancy_every == 0:
+            backbone = config.backbone_config
+            if it >= backbone.warmup_iters and it % backbone.occupancy_every == 0:
                 run.occupancy.update(run.field, run.sampling.step, generator)
         batch = torch.randint(len(rays["origins"]), (config.batch_rays,), generator=generator,
                               device=device)
