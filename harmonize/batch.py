@@ -91,7 +91,7 @@ class StackHarmonization:
         sheet = Path(render) / "contact_sheet.png" if render and self.many else None
         check_writable([*stacks.values(), *(p for ps in renders.values() for p in ps),
                         *([sheet] if sheet else [])], force)
-        with atomic_outputs() as stage:
+        with atomic_outputs(force) as stage:
             for name, path in stacks.items():
                 with open(stage(path), "wb") as f:
                     write_stack(self.harmonized_stack(name), f)

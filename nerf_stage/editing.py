@@ -201,7 +201,9 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
         raise InputError(f"{cache} holds another render ({render.source.get('views')} of "
                          f"{render.source.get('run')}); use --force to replace it")
     labels = list(palettes) + [f"harmonized-{t}" for t in templates]
-    existing = [str(out / label) for label in labels if (out / label).exists()]
+    outputs = [out / label for label in labels] + [out / f"{label}.gif" for label in labels
+                                                   if orbit is not None]
+    existing = [str(path) for path in outputs if path.exists()]
     if existing and not force:
         raise InputError(f"output {existing[0]} already exists (use --force to overwrite)")
     reused = render is not None and render.source == source
@@ -209,7 +211,7 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
         dataset = load_dataset(run.record.dataset, run.config.background)
         names, poses = render_poses(run, dataset, split, orbit)
         render = render_weights(run, names, poses, source, progress)
-        with atomic_outputs() as stage:
+        with atomic_outputs(force) as stage:
             write_render(render, stage(cache))
     if templates:
         shares = palette_shares(render.as_stack())
@@ -225,7 +227,7 @@ def _write_recoloured(render: WeightRender, palette: np.ndarray, folder: Path, g
                       force: bool) -> None:
     """Views recoloured with ``palette`` into ``folder`` (published whole), plus a GIF."""
     images = render.recolor(palette)
-    with atomic_outputs() as stage, publish_folder(folder, force) as staging:
+    with atomic_outputs(force) as stage, publish_folder(folder, force) as staging:
         for name, image in zip(render.names, images):
             save_image(staging / f"{name}.png", image)
         palette_swatch(palette).save(staging / "palette.png")

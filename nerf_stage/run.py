@@ -167,7 +167,7 @@ def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator
                  "channels": record.channels, "stack_meta": record.stack_meta},
         "log": record.log,
     }
-    with atomic_outputs() as stage:
+    with atomic_outputs(force=True) as stage:  # the run's own checkpoint
         torch.save(state, stage(path))
 
 

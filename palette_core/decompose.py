@@ -88,7 +88,7 @@ class Decomposition:
             check_writable([layers / "probe"], True)
         start = time.perf_counter()
         stack = self.stack
-        with atomic_outputs() as stage:
+        with atomic_outputs(force) as stage:
             with open(stage(stack_path), "wb") as f:
                 write_stack(stack, f)
             palette_swatch(stack.palette).save(stage(swatch), format="PNG")

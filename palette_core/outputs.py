@@ -1,15 +1,29 @@
 """Writing outputs: checked up front, staged beside their place, published by rename.
 
-Every command writes through here, so nothing is half-written: files are staged
-as hidden temporaries in their final folder (``atomic_outputs``) and folders are
-built beside their final place (``publish_folder``); both are renamed into place
-only when everything has been written, and removed on any error.
+Every command writes through here, so nothing is half-written and nothing the user
+had is replaced without ``force``:
+
+- files are staged as hidden temporaries in their final folder
+  (``atomic_outputs``) and folders are built beside their final place
+  (``publish_folder``); both are renamed into place only when everything has
+  been written, and removed on any error, SIGINT, SIGTERM or SIGHUP
+  (``cli.run_cli`` turns the signals into exceptions);
+- without ``force`` the rename never replaces anything
+  (``renameat2(RENAME_NOREPLACE)``), so an output that someone else created
+  after the start-up check is kept and reported;
+- temporaries are named ``.NAME.~PID~XXXXXXXX.tmp...``: after a SIGKILL nothing can
+  clean up, so the next write into the same folder removes the temporaries of
+  processes that no longer run (``sweep_stale``);
+- files and folders get the permissions the umask allows, like any other file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -20,35 +34,102 @@ from PIL import Image
 
 from .errors import InputError
 
+_STALE = re.compile(r"^\..*\.~(\d+)~[^/]*$")
+
+
+def _temp_name(name: str) -> str:
+    """Prefix of a temporary for ``name``: hidden, and naming this process."""
+    return f".{name}.~{os.getpid()}~"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def sweep_stale(folder: Path) -> None:
+    """Remove the temporaries of processes that no longer run from ``folder``."""
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        match = _STALE.match(entry.name)
+        if not match or _alive(int(match.group(1))):
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
 
 @contextlib.contextmanager
-def atomic_outputs():
+def atomic_outputs(force: bool = False):
     """Stage output files and publish them together, or not at all.
 
     Yields a function ``stage(final_path) -> temp_path``: write to the temporary
     path it returns. When the block ends without error every staged file is
     renamed onto its final path; on error every temporary file is removed.
+    Without ``force`` no existing file is replaced: if one appeared meanwhile,
+    the files published so far are taken back and InputError names it.
+
+    Raises
+    ------
+    InputError
+        If two outputs have the same path, or (without ``force``) an output exists
+        at publish time.
     """
-    staged: list[tuple[Path, Path]] = []
+    staged: dict[Path, Path] = {}
 
     def stage(final: str | os.PathLike) -> Path:
         final = Path(final)
+        if final in staged:
+            raise InputError(f"two outputs would be written to {final}: give them distinct names")
         final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{final.stem}.", suffix=".tmp" + final.suffix, dir=final.parent
-        )
+        sweep_stale(final.parent)
+        fd, tmp = tempfile.mkstemp(prefix=_temp_name(final.stem), suffix=".tmp" + final.suffix,
+                                   dir=final.parent)
+        os.fchmod(fd, 0o666 & ~_umask())
         os.close(fd)
-        staged.append((Path(tmp), final))
+        staged[final] = Path(tmp)
         return Path(tmp)
 
     try:
         yield stage
-    except BaseException:
-        for tmp, _ in staged:
+        _publish_files(staged, force)
+    finally:
+        for tmp in staged.values():
             tmp.unlink(missing_ok=True)
+
+
+def _publish_files(staged: dict[Path, Path], force: bool) -> None:
+    published = []
+    try:
+        for final, tmp in staged.items():
+            if force:
+                os.replace(tmp, final)
+                continue
+            try:
+                rename_no_replace(tmp, final)
+            except FileExistsError:
+                raise InputError(f"output {final} appeared while writing; it was kept "
+                                 "(use --force to overwrite)") from None
+            published.append(final)
+    except BaseException:
+        for final in published:
+            final.unlink(missing_ok=True)
         raise
-    for tmp, final in staged:
-        os.replace(tmp, final)
 
 
 @contextlib.contextmanager
@@ -56,29 +137,85 @@ def publish_folder(final: str | os.PathLike, force: bool = False) -> Iterator[Pa
     """Build a folder beside ``final`` and rename it onto ``final`` when the block succeeds.
 
     Yields the staging folder. An existing ``final`` is replaced (moved aside,
-    then deleted) only with ``force``; on error the staging folder is removed.
+    then deleted) only with ``force``; without it, an empty ``final`` is taken
+    over and anything else that is there at publish time is kept and reported.
+    On error the staging folder is removed.
 
     Raises
     ------
     InputError
-        If ``final`` exists and ``force`` is not given.
+        If ``final`` is not empty (without ``force``), now or at publish time.
     """
     final = Path(final)
     check_outdir(final, force)
     final.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+    sweep_stale(final.parent)
+    staging = Path(tempfile.mkdtemp(prefix=_temp_name(final.name), dir=final.parent))
     try:
+        os.chmod(staging, 0o777 & ~_umask())
         yield staging
-        if final.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=final.parent))
+        if force and final.exists():
+            trash = Path(tempfile.mkdtemp(prefix=_temp_name(final.name + ".old"),
+                                          dir=final.parent))
             os.replace(final, trash / "old")
             os.replace(staging, final)
             shutil.rmtree(trash)
-        else:
-            os.replace(staging, final)
-    except BaseException:
+            return
+        with contextlib.suppress(FileNotFoundError, OSError):
+            final.rmdir()  # only when empty: what check_outdir allowed
+        try:
+            rename_no_replace(staging, final)
+        except FileExistsError:
+            raise InputError(f"output folder {final} appeared while writing; it was kept "
+                             "(use --force to replace it)") from None
+    finally:
         shutil.rmtree(staging, ignore_errors=True)
-        raise
+
+
+def rename_no_replace(source: Path, target: Path) -> None:
+    """Rename ``source`` onto ``target`` unless ``target`` exists (FileExistsError), atomically
+    with Linux's ``renameat2(RENAME_NOREPLACE)``, else by checking first."""
+    renameat2 = getattr(_libc(), "renameat2", None)
+    if renameat2 is None:
+        if os.path.lexists(target):
+            raise FileExistsError(errno.EEXIST, "exists", str(target))
+        os.rename(source, target)
+        return
+    at_fdcwd, noreplace = -100, 1
+    if renameat2(at_fdcwd, os.fsencode(source), at_fdcwd, os.fsencode(target), noreplace) != 0:
+        code = ctypes.get_errno()
+        if code in (errno.EEXIST, errno.ENOTEMPTY):
+            raise FileExistsError(code, os.strerror(code), str(target))
+        if code in (errno.ENOSYS, errno.EINVAL):  # file system without the flag
+            if os.path.lexists(target):
+                raise FileExistsError(errno.EEXIST, "exists", str(target))
+            os.rename(source, target)
+            return
+        raise OSError(code, os.strerror(code), str(target))
+
+
+def _libc():
+    try:
+        return ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return None
+
+
+def inside(folder: str | os.PathLike, name: str) -> Path:
+    """``folder / name``, checked to lie inside ``folder`` (names come from files we read).
+
+    Raises
+    ------
+    InputError
+        If ``name`` is empty, absolute, holds a NUL or ``..``, or resolves outside.
+    """
+    folder = Path(folder)
+    path = folder / name
+    if (not name or "\0" in name or Path(name).is_absolute()
+            or ".." in Path(name).parts
+            or not path.resolve().is_relative_to(folder.resolve())):
+        raise InputError(f"refusing to write {name!r}: it would land outside {folder}")
+    return path
 
 
 def check_writable(paths: list[Path], force: bool) -> None:

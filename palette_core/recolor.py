@@ -28,7 +28,7 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     """
     targets = [Path(folder) / name for name in stack.names]
     check_writable(targets, force)
-    with atomic_outputs() as stage:
+    with atomic_outputs(force) as stage:
         for target, weights in zip(targets, stack.weights):
             save_image(stage(target), weights_to_rgb(weights, palette, stack.basis, stack.order))
     return targets

@@ -9,8 +9,10 @@ import dataclasses
 import enum
 import inspect
 import re
+import signal
 import sys
 import textwrap
+import threading
 import typing
 from collections.abc import Callable
 
@@ -25,16 +27,43 @@ class ArgumentParser(argparse.ArgumentParser):
         raise InputError(message)
 
 
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived: unwinds like KeyboardInterrupt, so outputs clean up."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _terminate(signum, frame):
+    raise Terminated(signum)
+
+
 def run_cli(prog: str, body: Callable[[], int]) -> int:
-    """Run a CLI body; bad input becomes one line on stderr and exit code 2."""
+    """Run a CLI body; bad input and failed reads or writes (a full disk, say) become one
+    line on stderr and exit code 2. SIGINT, SIGTERM and SIGHUP unwind the body, so that
+    staged outputs are removed, and exit with 128 + the signal's number."""
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         return body()
     except InputError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"{prog}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
-        return 130
+        return 128 + signal.SIGINT
+    except Terminated as exc:
+        print(f"{prog}: stopped by {signal.Signals(exc.signum).name}", file=sys.stderr)
+        return 128 + exc.signum
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def add_method_options(parser: argparse.ArgumentParser, methods: dict[str, Callable]) -> None:
