@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from palette_core.basis import weights_to_rgb
 from palette_core.errors import InputError
-from palette_core.outputs import atomic_outputs, check_writable, save_image
+from palette_core.outputs import atomic_outputs, check_writable, inside, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.render import palette_swatch
 from palette_core.stack import WeightStack, write_stack
@@ -65,7 +65,7 @@ class StackHarmonization:
     def render_paths(self, folder: Path) -> dict[str, list[Path]]:
         """Per template: the recoloured images, then hue_wheel.png and palette.png (one
         subfolder per template when all were asked for)."""
-        return {name: [sub / n for n in self.stack.names] + [sub / "hue_wheel.png",
+        return {name: [inside(sub, n) for n in self.stack.names] + [sub / "hue_wheel.png",
                                                               sub / "palette.png"]
                 for name in self.results
                 for sub in [folder / name if self.many else folder]}

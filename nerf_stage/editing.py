@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,10 +19,10 @@ from PIL import Image
 
 from palette_core.basis import Basis, n_terms, weights_to_rgb
 from palette_core.errors import InputError
-from palette_core.outputs import atomic_outputs, publish_folder, save_image
+from palette_core.outputs import atomic_outputs, inside, publish_folder, save_image
 from palette_core.palette_file import read_palette_json
 from palette_core.render import palette_swatch
-from palette_core.stack import WeightStack
+from palette_core.stack import NpzReader, WeightStack, check_names
 
 from .cameras import orbit_poses
 from .fields import RGB
@@ -118,16 +117,15 @@ def read_render(path: str | os.PathLike) -> WeightRender:
     InputError
         If the file is not a ``palette-render/1`` NPZ or a key is missing or malformed.
     """
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            if str(npz.get("format", "")) != RENDER_FORMAT:
-                raise InputError(f"{path} is not a weight render (format {RENDER_FORMAT})")
-            weights, opacity, palette = npz["weights"], npz["opacity"], npz["palette"]
-            names, background = npz["names"].tolist(), npz["background"]
-            basis, order = Basis.parse(str(npz["basis"])), int(npz["order"])
-            source = json.loads(str(npz["source"]))
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
-        raise InputError(f"{path} is not a readable weight render: {exc}") from None
+    with NpzReader(Path(path), f"a weight render ({RENDER_FORMAT})") as npz:
+        if npz.text("format") != RENDER_FORMAT:
+            raise InputError(f"{path} is not a weight render (format {RENDER_FORMAT})")
+        weights, opacity = npz.array("weights", "f"), npz.array("opacity", "f")
+        palette, background = npz.array("palette", "f"), npz.array("background", "f")
+        names = npz.array("names", "U").tolist()
+        basis, order = Basis.parse(npz.text("basis")), int(npz.array("order", "iu"))
+        source = npz.json("source")
+    check_names(names, str(path))
     n = len(names)
     m = n_terms(len(palette), basis, order)
     if (weights.shape[:1] != (n,) or weights.ndim != 4 or weights.shape[-1] != m
@@ -229,7 +227,7 @@ def _write_recoloured(render: WeightRender, palette: np.ndarray, folder: Path, g
     images = render.recolor(palette)
     with atomic_outputs(force) as stage, publish_folder(folder, force) as staging:
         for name, image in zip(render.names, images):
-            save_image(staging / f"{name}.png", image)
+            save_image(inside(staging, f"{name}.png"), image)
         palette_swatch(palette).save(staging / "palette.png")
         if gif:
             write_gif(stage(folder.with_suffix(".gif")), images)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .basis import weights_to_rgb
-from .outputs import atomic_outputs, check_writable, save_image
+from .outputs import atomic_outputs, check_writable, inside, save_image
 from .stack import WeightStack
 
 
@@ -26,7 +26,7 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     InputError
         If an image exists (without ``force``) or the folder cannot be written.
     """
-    targets = [Path(folder) / name for name in stack.names]
+    targets = [inside(folder, name) for name in stack.names]
     check_writable(targets, force)
     with atomic_outputs(force) as stage:
         for target, weights in zip(targets, stack.weights):

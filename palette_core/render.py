@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from .outputs import inside
 from .palette_file import palette_to_hex
 
 
@@ -23,5 +24,5 @@ def palette_swatch(palette: np.ndarray, size: int = 96) -> Image.Image:
 
 def layer_paths(folder: Path, name: str, k: int) -> list[Path]:
     """Paths of the K weight-map PNGs of image ``name`` (its relative path) in ``folder``."""
-    stem = Path(name).with_suffix("")
-    return [folder / f"{stem}_w{j}.png" for j in range(k)]
+    stem = Path(name).with_suffix("").as_posix()
+    return [inside(folder, f"{stem}_w{j}.png") for j in range(k)]

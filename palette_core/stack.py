@@ -11,7 +11,7 @@ import json
 import os
 import zipfile
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -85,79 +85,146 @@ def write_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None =
 def read_stack(path: str | os.PathLike) -> WeightStack:
     """Read and validate an NPZ weight stack.
 
+    Only the keys of the format are read, and each array's declared shape is
+    checked against its stored size before it is loaded, so a crafted file can
+    neither make us allocate what it does not hold nor load members we do not use.
+
     Raises
     ------
     InputError
         If the file is missing, not an NPZ, or any key is absent or malformed
-        (the message names the key).
+        (the message names the key): names must be distinct relative paths,
+        weights finite, the palette in [0, 1].
     """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"weight stack {path} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {key: npz[key] for key in npz.files}
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise InputError(f"{path} is not a readable NPZ weight stack: {exc}") from None
+    with NpzReader(path, f"a {FORMAT} stack") as npz:
+        if npz.text("format") != FORMAT:
+            raise InputError(f"{path}: format is {npz.text('format')!r}, expected {FORMAT!r}")
+        palette = npz.array("palette", "f")
+        if palette.ndim != 2 or palette.shape[1] != 3 or len(palette) == 0:
+            raise InputError(f"{path}: palette must have shape (K, 3), got {palette.shape}")
+        if not np.isfinite(palette).all() or palette.min() < 0 or palette.max() > 1:
+            raise InputError(f"{path}: palette values must lie in [0, 1]")
+        try:
+            basis = Basis.parse(npz.text("basis"))
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+        order = npz.array("order", "iu")
+        if order.ndim != 0 or order < 1:
+            raise InputError(f"{path}: order must be an integer >= 1, got {order}")
+        order = int(order)
+        if basis == Basis.ADDITIVE and order != 1:
+            raise InputError(f"{path}: an additive stack has order 1, got {order}")
+        names = npz.array("names", "U")
+        if names.ndim != 1:
+            raise InputError(f"{path}: names must be a 1-D array of strings")
+        names = names.tolist()
+        check_names(names, str(path))
+        m = n_terms(len(palette), basis, order)
+        if "weights" in npz:
+            stacked = npz.array("weights", "f")
+            if stacked.ndim != 4:
+                raise InputError(f"{path}: weights must have shape (N, H, W, M), "
+                                 f"got {stacked.shape}")
+            weights = list(stacked)
+        else:
+            weights = [npz.array(f"weights_{i:04d}", "f") for i in range(len(names))]
+        if len(weights) != len(names):
+            raise InputError(f"{path}: {len(names)} names but {len(weights)} weight images")
+        for name, w in zip(names, weights):
+            if w.ndim != 3 or w.shape[2] != m or w.dtype not in (np.float32, np.float16):
+                raise InputError(f"{path}: weights of {name} must be float32/float16 of shape "
+                                 f"(H, W, {m}), got {w.dtype} {w.shape}")
+            if not np.isfinite(w).all():
+                raise InputError(f"{path}: weights of {name} hold NaN or infinity")
+        hull_faces = np.zeros((0, 3), np.int32)
+        if basis == Basis.ADDITIVE and "hull_faces" in npz:
+            hull_faces = npz.array("hull_faces", "iu")
+            if hull_faces.ndim != 2 or hull_faces.shape[1] != 3:
+                raise InputError(f"{path}: hull_faces must be integers of shape (F, 3)")
+            if hull_faces.size and (hull_faces.min() < 0 or hull_faces.max() >= len(palette)):
+                raise InputError(f"{path}: hull_faces index outside the palette")
+        meta = npz.json("meta") if "meta" in npz else {}
+        if not isinstance(meta, dict):
+            raise InputError(f"{path}: meta must be a JSON object")
+        method = npz.text("method")
+    return WeightStack(palette.astype(np.float32), weights, names, method, basis, order,
+                       hull_faces.astype(np.int32), meta)
 
-    def need(key: str) -> np.ndarray:
-        if key not in data:
-            raise InputError(f"{path}: missing key {key!r} (is it a {FORMAT} stack?)")
-        return data[key]
 
-    def text(key: str) -> str:
-        value = need(key)
-        if value.ndim != 0 or value.dtype.kind != "U":
-            raise InputError(f"{path}: key {key!r} must be a string")
+def check_names(names: list[str], source: str) -> None:
+    """InputError unless every name is a distinct, non-empty relative path without ``..``
+    or NUL: names become output paths (``outputs.inside`` checks those again)."""
+    seen = set()
+    for name in names:
+        parts = PurePosixPath(name).parts
+        if (not name or "\0" in name or name.startswith(("/", "\\")) or ".." in parts
+                or "\\" in name or name in seen):
+            raise InputError(f"{source}: image name {name!r} is not a distinct relative path")
+        seen.add(name)
+
+
+class NpzReader:
+    """The arrays of an NPZ file, read one key at a time, never unpickled.
+
+    Each array's header is read first and its declared size compared with the
+    bytes the member holds, so a crafted shape cannot make us allocate memory.
+    """
+
+    def __init__(self, path: Path, what: str):
+        self.path, self.what = path, what
+
+    def __enter__(self) -> NpzReader:
+        try:
+            self.zip = zipfile.ZipFile(self.path)
+        except (OSError, zipfile.BadZipFile, ValueError) as exc:
+            raise InputError(f"{self.path} is not a readable NPZ file ({self.what}): "
+                             f"{exc}") from None
+        self.members = {name[:-4]: name for name in self.zip.namelist() if name.endswith(".npy")}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.zip.close()
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.members
+
+    def array(self, key: str, kinds: str) -> np.ndarray:
+        """The array ``key``, whose dtype kind must be one of ``kinds`` ('f', 'iu', 'U')."""
+        if key not in self.members:
+            raise InputError(f"{self.path}: missing key {key!r} (is it {self.what}?)")
+        info = self.zip.getinfo(self.members[key])
+        try:
+            with self.zip.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read_header(f)
+                header = f.tell()
+                if dtype.kind not in kinds or dtype.hasobject:
+                    raise InputError(f"{self.path}: key {key!r} has dtype {dtype}")
+                declared = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+                if declared != info.file_size - header:
+                    raise InputError(f"{self.path}: key {key!r} declares shape {shape} "
+                                     "but holds another size")
+            with self.zip.open(info) as f:
+                return np.lib.format.read_array(f, allow_pickle=False)
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise InputError(f"{self.path}: key {key!r} cannot be read: {exc}") from None
+
+    def text(self, key: str) -> str:
+        value = self.array(key, "U")
+        if value.ndim != 0:
+            raise InputError(f"{self.path}: key {key!r} must be a string")
         return str(value)
 
-    if text("format") != FORMAT:
-        raise InputError(f"{path}: format is {text('format')!r}, expected {FORMAT!r}")
-    palette = need("palette")
-    if palette.ndim != 2 or palette.shape[1] != 3 or len(palette) == 0:
-        raise InputError(f"{path}: palette must have shape (K, 3), got {palette.shape}")
-    if not np.isfinite(palette).all() or palette.min() < 0 or palette.max() > 1:
-        raise InputError(f"{path}: palette values must lie in [0, 1]")
-    try:
-        basis = Basis.parse(text("basis"))
-    except InputError as exc:
-        raise InputError(f"{path}: {exc}") from None
-    order = need("order")
-    if order.ndim != 0 or order.dtype.kind not in "iu" or order < 1:
-        raise InputError(f"{path}: order must be an integer >= 1, got {order}")
-    order = int(order)
-    if basis == Basis.ADDITIVE and order != 1:
-        raise InputError(f"{path}: an additive stack has order 1, got {order}")
-    names = need("names")
-    if names.ndim != 1 or names.dtype.kind != "U":
-        raise InputError(f"{path}: names must be a 1-D array of strings")
-    if "weights" in data:
-        weights = list(data["weights"])
-        if data["weights"].ndim != 4:
-            raise InputError(f"{path}: weights must have shape (N, H, W, M), "
-                             f"got {data['weights'].shape}")
-    else:
-        weights = [need(f"weights_{i:04d}") for i in range(len(names))]
-    if len(weights) != len(names):
-        raise InputError(f"{path}: {len(names)} names but {len(weights)} weight images")
-    m = n_terms(len(palette), basis, order)
-    for name, w in zip(names, weights):
-        if w.ndim != 3 or w.shape[2] != m or w.dtype not in (np.float32, np.float16):
-            raise InputError(f"{path}: weights of {name} must be float32/float16 of shape "
-                             f"(H, W, {m}), got {w.dtype} {w.shape}")
-    hull_faces = np.zeros((0, 3), np.int32)
-    if basis == Basis.ADDITIVE:
-        hull_faces = need("hull_faces")
-        if hull_faces.ndim != 2 or hull_faces.shape[1] != 3 or hull_faces.dtype.kind not in "iu":
-            raise InputError(f"{path}: hull_faces must be integers of shape (F, 3)")
-        if hull_faces.size and (hull_faces.min() < 0 or hull_faces.max() >= len(palette)):
-            raise InputError(f"{path}: hull_faces index outside the palette")
-    try:
-        meta = json.loads(text("meta"))
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: meta is not valid JSON: {exc}") from None
-    return WeightStack(palette.astype(np.float32), weights, names.tolist(), text("method"),
-                       basis, order, hull_faces.astype(np.int32), meta)
+    def json(self, key: str):
+        try:
+            return json.loads(self.text(key))
+        except (json.JSONDecodeError, RecursionError) as exc:
+            raise InputError(f"{self.path}: {key} is not valid JSON: {exc}") from None
 
 
 def check_dtype(dtype: str) -> None:
