@@ -22,9 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from palette_core.errors import InputError
+from palette_core.io import open_image
 from palette_core.stack import WeightStack
 
 from .cameras import Intrinsics, focal_length
@@ -157,7 +157,7 @@ def _listing(names: list[str], most: int = 5) -> str:
 def _load_json(path: Path) -> dict:
     try:
         data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise InputError(f"{path} is not valid JSON: {exc}") from None
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
         raise InputError(f"{path}: expected an object with a 'frames' list")
@@ -189,6 +189,8 @@ def _frames(data: dict, path: Path, default_suffix: str) -> tuple[list[str], lis
             pose = pose.astype(np.float64)
         except (TypeError, ValueError):
             raise InputError(f"{where}: 'transform_matrix' must hold numbers") from None
+        if not np.isfinite(pose).all():
+            raise InputError(f"{where}: 'transform_matrix' holds NaN or infinity")
         names.append(PurePosixPath(os.path.normpath(name)).as_posix())
         poses.append(np.vstack([pose[:3], [0.0, 0.0, 0.0, 1.0]]))
     return names, poses
@@ -232,10 +234,8 @@ def _read_nerfstudio(root: Path):
 
 def _read_rgba(path: Path) -> np.ndarray:
     """(H, W, 4) float32 in [0, 1]; images without alpha are opaque."""
-    try:
-        with Image.open(path) as im:
+    with open_image(path) as im:
+        try:
             return np.asarray(im.convert("RGBA"), np.float32) / 255.0
-    except FileNotFoundError:
-        raise InputError(f"image {path} does not exist") from None
-    except (OSError, UnidentifiedImageError) as exc:
-        raise InputError(f"cannot read image {path}: {exc}") from None
+        except (OSError, ValueError) as exc:
+            raise InputError(f"cannot read image {path}: {exc}") from None

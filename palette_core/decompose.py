@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from tqdm import tqdm
 
 from .colour_set import ColourSet
 from .errors import InputError
-from .io import find_images, load_images
+from .io import DEFAULT_MAX_PIXELS, find_images, load_images
 from .outputs import atomic_outputs, check_writable, save_image
 from .palette_file import write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
@@ -40,6 +41,8 @@ class Decomposition:
         Seconds per stage: load, palette, weights (and write, once written).
     requested_k : int or None
         The palette size asked for.
+    inputs : list of Path
+        The image files and folders it was made from (outputs may not land among them).
     """
 
     stack: WeightStack
@@ -47,6 +50,7 @@ class Decomposition:
     rmse_overall: float
     timings: dict[str, float]
     requested_k: int | None = None
+    inputs: list[Path] = field(default_factory=list)
 
     @property
     def hull_too_small(self) -> bool:
@@ -64,6 +68,8 @@ class Decomposition:
         """Write the stack, its palette swatch and JSON, and optionally weight-map PNGs.
 
         Every file is staged and published together (``outputs.atomic_outputs``).
+        No output may be an input or lie inside an input folder, where the next
+        run would read it as an image.
 
         Returns
         -------
@@ -80,8 +86,9 @@ class Decomposition:
         if stack_path.suffix != ".npz":
             raise InputError(f"output must end in .npz, got {stack_path}")
         check_writable(paths, force)
+        layers = None if layers is None else Path(layers)
+        self._check_apart_from_inputs(paths + ([layers] if layers is not None else []))
         if layers is not None:
-            layers = Path(layers)
             if layers.exists() and (not layers.is_dir() or (any(layers.iterdir()) and not force)):
                 raise InputError(f"layers folder {layers} exists and is not empty "
                                  "(use --force to write into it)")
@@ -100,6 +107,14 @@ class Decomposition:
         self.timings["write"] = time.perf_counter() - start
         return paths + ([layers] if layers is not None else [])
 
+    def _check_apart_from_inputs(self, outputs: list[Path]) -> None:
+        for output in outputs:
+            target = Path(os.path.abspath(output))
+            for source in map(lambda p: Path(os.path.abspath(p)), self.inputs):
+                if target == source or (source.is_dir() and target.is_relative_to(source)):
+                    raise InputError(f"output {output} would land among the inputs ({source}), "
+                                     "where the next run reads it as an image: write it elsewhere")
+
 
 def decompose(
     inputs: list,
@@ -109,6 +124,7 @@ def decompose(
     dtype: str = "float32",
     method_options: dict | None = None,
     palette_method: str = "hull",
+    max_pixels: int = DEFAULT_MAX_PIXELS,
 ) -> Decomposition:
     """Decompose image files and folders into one shared palette and per-pixel weights.
 
@@ -127,11 +143,19 @@ def decompose(
         Keyword options of the weight method (``spatial_scale`` for rgbxy).
     palette_method : str
         A key of ``palettes.PALETTE_METHODS``.
+    max_pixels : int
+        Largest image to decode (``io.DEFAULT_MAX_PIXELS``); larger ones are refused
+        from their header.
 
     Raises
     ------
     InputError
-        On unreadable inputs or invalid options.
+        On unreadable inputs, images with no opaque pixel at all, or invalid options.
+
+    Notes
+    -----
+    float16 weights are rounded so that each pixel's weights still sum to one
+    within ``FLOAT16_SUM_TOL`` (the residual of the rounding goes to its largest weight).
     """
     k = check_palette_size(k, max_error)
     method_options = method_options or {}
@@ -142,8 +166,11 @@ def decompose(
     start = time.perf_counter()
     root, paths = find_images(inputs)
     progress = len(paths) >= PROGRESS_MIN_IMAGES
-    images = load_images(paths, root, progress)
+    images = load_images(paths, root, progress, max_pixels)
     colour_set = ColourSet.from_images(images)
+    if not colour_set.counts.any():
+        raise InputError("every pixel of every image is fully transparent: there are no colours "
+                         "to take a palette from")
     timings["load"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -153,8 +180,8 @@ def decompose(
 
     start = time.perf_counter()
     produced = image_weights(colour_set, poly, method, **method_options)
-    weights = [w.astype(dtype) for w in tqdm(produced, total=len(images), desc="weights",
-                                             unit="img", disable=not progress)]
+    weights = [_stored(w, dtype) for w in tqdm(produced, total=len(images), desc="weights",
+                                               unit="img", disable=not progress)]
     timings["weights"] = time.perf_counter() - start
 
     rmse, squared, count = {}, 0.0, 0
@@ -182,4 +209,22 @@ def decompose(
     }
     stack = WeightStack(palette, weights, [im.name for im in images], method,
                         hull_faces=poly.faces.astype(np.int32), meta=meta)
-    return Decomposition(stack, rmse, overall, timings, k)
+    return Decomposition(stack, rmse, overall, timings, k, [Path(p) for p in inputs])
+
+
+#: Each pixel's float16 weights sum to one within this (half a float16 step at 1, plus
+#: the float32 sum's rounding); float32 weights hold ``constants.WEIGHT_SUM_TOL``.
+FLOAT16_SUM_TOL = 2.5e-4
+
+
+def _stored(weights: np.ndarray, dtype: str) -> np.ndarray:
+    """(H, W, K) weights in the storage type; float16 rounding residuals go to each pixel's
+    largest weight, so that sums stay within ``FLOAT16_SUM_TOL`` of one."""
+    if dtype != "float16":
+        return weights.astype(dtype)
+    rounded = weights.astype(np.float16)
+    residual = 1.0 - rounded.astype(np.float32).sum(-1, keepdims=True)
+    largest = np.argmax(weights, axis=-1)[..., None]
+    corrected = np.take_along_axis(rounded, largest, -1).astype(np.float32) + residual
+    np.put_along_axis(rounded, largest, corrected.astype(np.float16), -1)
+    return rounded

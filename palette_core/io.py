@@ -8,7 +8,9 @@ and fully transparent pixels are marked so the palette can leave them out.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +22,11 @@ from PIL import Image, UnidentifiedImageError
 from .errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+
+#: Largest image decoded by default, in pixels (``--max-pixels``): 2^26, a 67 MP photo.
+#: Decomposing one peaks near 100 bytes per pixel, so this stays within a few GB, and a
+#: file whose header declares more is refused before anything is decoded.
+DEFAULT_MAX_PIXELS = 1 << 26
 
 # EXIF orientation tag -> numpy operation that undoes it (as PIL.ImageOps.exif_transpose).
 _ORIENT = {
@@ -82,29 +89,62 @@ def find_images(inputs: list[str | os.PathLike]) -> tuple[Path, list[Path]]:
             paths.append(item)
         else:
             raise InputError(f"input path does not exist: {item}")
-    paths = list(dict.fromkeys(p.resolve() for p in paths))
+    paths = list(dict.fromkeys(Path(os.path.abspath(p)) for p in paths))  # links keep names
     root = Path(os.path.commonpath([p.parent for p in paths]))
     return root, paths
 
 
-def load_image(path: str | os.PathLike, name: str | None = None) -> LoadedImage:
+@contextlib.contextmanager
+def open_image(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS):
+    """Pillow's image of ``path``, its header checked against ``max_pixels`` before decoding.
+
+    Raises
+    ------
+    InputError
+        If the file is not an image Pillow knows, or declares more than ``max_pixels``.
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(path)
+    except FileNotFoundError:
+        raise InputError(f"image {path} does not exist") from None
+    except Image.DecompressionBombError:
+        raise InputError(f"image {path} declares more pixels than --max-pixels "
+                         f"{max_pixels} allows") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise InputError(f"cannot read image {path}: {exc}") from None
+    with im:
+        if im.width * im.height > max_pixels:
+            raise InputError(f"image {path} is {im.width}x{im.height}, more than --max-pixels "
+                             f"{max_pixels} allows")
+        yield im
+
+
+def load_image(path: str | os.PathLike, name: str | None = None,
+               max_pixels: int = DEFAULT_MAX_PIXELS) -> LoadedImage:
     """Decode one image file (see the module docstring for what is supported).
 
     Raises
     ------
     InputError
-        If the file cannot be decoded as an image (the message names it).
+        If the file cannot be decoded as an image, declares more than ``max_pixels``
+        pixels, or holds NaN (the message names it).
     """
     path = Path(path)
     try:
-        with Image.open(path) as im:
-            im.load()
+        with open_image(path, max_pixels) as im:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                im.load()
             orientation = im.getexif().get(0x0112, 1)
             pixels = _read_16bit_rgb(path, im) if _is_16bit_rgb(path, im) else None
             if pixels is None:
                 pixels = _pil_to_array(im)
+    except InputError:
+        raise
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, png.Error) as exc:
-        raise InputError(f"cannot read {path} as an image: {exc}") from None
+        raise InputError(f"cannot read image {path}: {exc}") from None
     if pixels.shape[-1] == 4:
         opaque = pixels[..., 3] > 0
         pixels = pixels[..., :3]
@@ -125,7 +165,10 @@ def _pil_to_array(im: Image.Image) -> np.ndarray:
         grey = np.clip(np.asarray(im), 0, 65535).astype(np.uint16)
         return np.repeat(grey[..., None], 3, axis=-1)
     if im.mode == "F":
-        grey = np.round(np.clip(np.asarray(im), 0.0, 1.0) * 65535).astype(np.uint16)
+        values = np.asarray(im)
+        if not np.isfinite(values).all():
+            raise ValueError("it holds NaN or infinite values")
+        grey = np.round(np.clip(values, 0.0, 1.0) * 65535).astype(np.uint16)
         return np.repeat(grey[..., None], 3, axis=-1)
     has_alpha = im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in im.info
     return np.asarray(im.convert("RGBA" if has_alpha else "RGB"))
@@ -149,14 +192,22 @@ def _read_16bit_rgb(path: Path, im: Image.Image) -> np.ndarray:
         width, height, rows, info = png.Reader(filename=str(path)).asDirect()
         planes = info["planes"]
         return np.vstack([np.asarray(r, np.uint16) for r in rows]).reshape(height, width, planes)
-    return tifffile.imread(path, key=0)[..., :4]
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        pixels = page.asarray()
+        if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:  # (S, H, W): one plane a channel
+            pixels = np.moveaxis(pixels, 0, -1)
+    if pixels.ndim != 3:
+        raise ValueError(f"unsupported TIFF layout {page.axes} {pixels.shape}")
+    return pixels[..., :4]
 
 
-def load_images(paths: list[Path], root: Path, progress: bool = False) -> list[LoadedImage]:
+def load_images(paths: list[Path], root: Path, progress: bool = False,
+                max_pixels: int = DEFAULT_MAX_PIXELS) -> list[LoadedImage]:
     """Decode every path, naming each image by its path relative to ``root``."""
     from tqdm import tqdm
 
     return [
-        load_image(p, p.relative_to(root).as_posix())
+        load_image(p, p.relative_to(root).as_posix(), max_pixels)
         for p in tqdm(paths, desc="loading", unit="img", disable=not progress)
     ]

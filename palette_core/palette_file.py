@@ -46,7 +46,7 @@ def read_palette_json(path: str | os.PathLike, k: int | None = None) -> np.ndarr
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise InputError(f"palette file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise InputError(f"palette file {path} is not valid JSON: {exc}") from None
     entries = data.get("palette") if isinstance(data, dict) else None
     if not isinstance(entries, list) or not entries:

@@ -18,6 +18,7 @@ are plain colours. Every message about a malformed file names the field.
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -39,6 +40,14 @@ SKIMAGE_PREFIX = "skimage:"
 # scikit-image samples shipped inside the wheel (others would need a download)
 SKIMAGE_TEXTURES = ("astronaut", "brick", "camera", "chelsea", "coffee", "grass", "gravel",
                     "moon", "rocket")
+
+#: Inclusive ranges of the integer settings, checked before any work (scene files and
+#: command-line overrides alike): beyond them a simulation would not fit in memory or time.
+LIMITS = {"resolution": (1, 4096), "views": (0, 100_000), "spp": (1, 1 << 16),
+          "order": (0, 8), "max_depth": (1, 64), "seed": (0, 2**63 - 1)}
+
+#: Largest per-term radiance buffer of one simulation (views x pixels x terms x 3 float64).
+MAX_TERM_BYTES = 8 << 30
 
 
 @dataclass
@@ -121,7 +130,8 @@ def load_scene(spec: str) -> Scene:
     try:
         text = path.read_text()
         data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, tomllib.TOMLDecodeError,
+            RecursionError) as exc:
         raise InputError(f"scene file {path} cannot be parsed: {exc}") from None
     return parse_scene(data, name=spec if spec in BUILTIN_SCENES else path.stem, root=path.parent)
 
@@ -170,7 +180,8 @@ class _Fields:
         return value
 
     def number(self, value, where: str, low=-np.inf, high=np.inf, inclusive=True) -> float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
+              and math.isfinite(value))
         if ok:
             ok = low <= value <= high if inclusive else low < value < high
         if not ok:
@@ -180,15 +191,17 @@ class _Fields:
                             value)
         return float(value)
 
-    def integer(self, value, where: str, low: int) -> int:
-        if not isinstance(value, int) or isinstance(value, bool) or value < low:
-            raise self.fail(where, f"an integer >= {low}", value)
+    def integer(self, value, where: str, limit: str) -> int:
+        low, high = LIMITS[limit]
+        if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+            raise self.fail(where, f"an integer in [{low}, {high}]", value)
         return value
 
     def vector(self, value, where: str) -> np.ndarray:
         if (not isinstance(value, list) or len(value) != 3
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
-            raise self.fail(where, "a list of 3 numbers", value)
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                           and math.isfinite(v) for v in value)):
+            raise self.fail(where, "a list of 3 finite numbers", value)
         return np.array(value, np.float64)
 
     def colour(self, value, where: str, high=1.0) -> np.ndarray:
@@ -355,10 +368,10 @@ def _parse_camera(reader: _Fields, cam: dict) -> Camera:
         resolution = [resolution, resolution]
     if len(resolution) != 2:
         raise reader.fail("camera.resolution", "an integer or [width, height]", resolution)
-    width, height = (reader.integer(r, "camera.resolution", 1) for r in resolution)
+    width, height = (reader.integer(r, "camera.resolution", "resolution") for r in resolution)
     views = reader.table(cam.get("views", {"train": 100, "val": 10, "test": 20}), "camera.views")
     reader.only(views, "camera.views", SPLITS)
-    counts = {split: reader.integer(views.get(split, 0), f"camera.views.{split}", 0)
+    counts = {split: reader.integer(views.get(split, 0), f"camera.views.{split}", "views")
               for split in SPLITS}
     if counts["train"] < 1:
         raise reader.fail("camera.views.train", "an integer >= 1", views.get("train"))
@@ -383,11 +396,11 @@ def _parse_render(reader: _Fields, render: dict) -> RenderSettings:
                                  "render.light = \"indirect\"")
         order, max_depth = 1, 1
     else:
-        order = reader.integer(render.get("order", 2), "render.order", 0)
+        order = reader.integer(render.get("order", 2), "render.order", "order")
         max_depth = reader.integer(render.get("max_depth", max(order, 1) + 2),
-                                   "render.max_depth", 1)
+                                   "render.max_depth", "max_depth")
     return RenderSettings(
         light=light, order=order, max_depth=max_depth,
-        spp=reader.integer(render.get("spp", 64), "render.spp", 1),
-        seed=reader.integer(render.get("seed", 0), "render.seed", 0),
+        spp=reader.integer(render.get("spp", 64), "render.spp", "spp"),
+        seed=reader.integer(render.get("seed", 0), "render.seed", "seed"),
     )

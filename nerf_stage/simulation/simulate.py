@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from palette_core import __version__
-from palette_core.basis import Basis, transport_basis
+from palette_core.basis import Basis, n_terms, transport_basis
 from palette_core.errors import InputError
 from palette_core.outputs import publish_folder, save_image
 from palette_core.palette_file import palette_to_hex
@@ -28,7 +28,7 @@ from palette_core.stack import WeightStack, write_stack
 from ..cameras import SPLIT_PHASES, blender_transforms, focal_from_fov, rig_poses
 from .geometry import next_term_table, scene_arrays
 from .kernels import trace_view
-from .scene import SPLITS, Scene
+from .scene import LIMITS, MAX_TERM_BYTES, SPLITS, Scene
 
 GREY_TOL = 1e-12
 
@@ -136,12 +136,18 @@ def with_overrides(scene: Scene, order=None, spp=None, resolution=None, views=No
     InputError
         If a value is out of range.
     """
-    for name, value, low in (("order", order, 0), ("spp", spp, 1), ("resolution", resolution, 1),
-                             ("seed", seed, 0), ("max_depth", max_depth, 1)):
+    for name, value in (("order", order), ("spp", spp), ("resolution", resolution),
+                        ("seed", seed), ("max_depth", max_depth)):
+        low, high = LIMITS[name]
         if value is not None and value < low:
             raise InputError(f"{name} must be at least {low}, got {value}")
-    if views is not None and (len(views) != 3 or min(views) < 0 or views[0] < 1):
-        raise InputError(f"views must be TRAIN VAL TEST counts with TRAIN >= 1, got {views}")
+        if value is not None and value > high:
+            raise InputError(f"{name} must be at most {high}, got {value}")
+    low, high = LIMITS["views"]
+    if views is not None and (len(views) != 3 or min(views) < low or max(views) > high
+                              or views[0] < 1):
+        raise InputError(f"views must be TRAIN VAL TEST counts in [{low}, {high}] with "
+                         f"TRAIN >= 1, got {views}")
     render = scene.render
     if order is not None:
         if not scene.palette_materials:
@@ -220,6 +226,7 @@ def simulate(scene: Scene, progress: bool = True) -> Simulation:
     """
     palette = np.array([m.albedo for m in scene.palette_materials]).reshape(-1, 3)
     split = len(palette) > 0
+    _check_size(scene, split)
     if split:
         _require_grey_fixed(scene)
     names, poses = view_poses(scene)
@@ -232,6 +239,19 @@ def simulate(scene: Scene, progress: bool = True) -> Simulation:
     else:
         weights, radiance = None, terms[..., 0, :]
     return Simulation(names, poses, radiance, alpha, weights, palette, scene.render.order, seconds)
+
+
+def _check_size(scene: Scene, split: bool) -> None:
+    """InputError if the per-term radiance of all views would exceed ``MAX_TERM_BYTES``."""
+    cam = scene.camera
+    terms = n_terms(len(scene.palette_materials), Basis.TRANSPORT, scene.render.order) \
+        if split else 1
+    needed = sum(cam.views.values()) * cam.width * cam.height * terms * 3 * 8
+    if needed > MAX_TERM_BYTES:
+        raise InputError(f"scene {scene.name}: {sum(cam.views.values())} views of "
+                         f"{cam.width}x{cam.height} with {terms} transport terms need "
+                         f"{needed / 2**30:.1f} GiB, more than {MAX_TERM_BYTES / 2**30:.0f} GiB: "
+                         "use fewer views, a lower resolution or a lower order")
 
 
 def _require_grey_fixed(scene: Scene) -> None:

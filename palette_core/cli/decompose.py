@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from ..decompose import decompose
+from ..io import DEFAULT_MAX_PIXELS
 from ..palette_file import palette_to_hex
 from ..palettes import PALETTE_METHODS
 from ..weights import WEIGHT_METHODS
@@ -36,6 +37,9 @@ def build_parser() -> ArgumentParser:
                         help="also write one weight-map PNG per palette colour per image here")
     parser.add_argument("--dtype", choices=("float32", "float16"), default="float32",
                         help="storage type of the weights (default float32)")
+    parser.add_argument("--max-pixels", type=int, default=DEFAULT_MAX_PIXELS, metavar="N",
+                        help="refuse images larger than N pixels, from their header, before "
+                             f"decoding (default {DEFAULT_MAX_PIXELS})")
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     return parser
 
@@ -46,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args) -> int:
     result = decompose(args.inputs, args.k, args.max_error, args.method, args.dtype,
-                       given_options(args, WEIGHT_METHODS), args.palette_method)
+                       given_options(args, WEIGHT_METHODS), args.palette_method, args.max_pixels)
     written = result.write(args.output, args.layers, args.force)
     stack = result.stack
     if result.hull_too_small:
