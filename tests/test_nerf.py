@@ -241,3 +241,44 @@ def test_cli_errors(cornell, cornell_run, still_life, tmp_path, capsys):
     expect_error(main, train_args[:5] + [str(copy), "--resume"], "another config", capsys)
     assert not (tmp_path / "x").exists()
     assert load_run(rundir).record.iteration == 4 and (rundir / CHECKPOINT).is_file()
+
+
+# --- hostile run folders ---------------------------------------------------------------------
+
+class _Payload:
+    """Unpickling this would create a marker file."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (str(self.marker), "w"))
+
+
+def test_a_crafted_checkpoint_runs_no_code(cornell_run, tmp_path, capsys):
+    rundir, _ = cornell_run
+    crafted = tmp_path / "crafted"
+    shutil.copytree(rundir, crafted)
+    marker = tmp_path / "pwned"
+    state = torch.load(crafted / CHECKPOINT, weights_only=True)
+    torch.save(dict(state, log=_Payload(marker)), crafted / CHECKPOINT)
+    for args in (["render", str(crafted), "-o", str(tmp_path / "r")], ["eval", str(crafted)]):
+        expect_error(main, args, "cannot read checkpoint", capsys)
+    assert not marker.exists()
+    state.pop("occupancy")
+    torch.save(state, crafted / CHECKPOINT)
+    expect_error(main, ["eval", str(crafted)], "lacks occupancy", capsys)
+
+
+def test_render_checks_every_argument_first(cornell_run, tmp_path, capsys):
+    rundir, _ = cornell_run
+    out = tmp_path / "out"
+    expect_error(main, ["render", str(rundir), "--harmonize", "nope", "-o", str(out)],
+                 "unknown template 'nope'", capsys)
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "x.json").write_text(json.dumps({"palette": ["#102030"] * 4}))
+    expect_error(main, ["render", str(rundir), "--palette", str(tmp_path / "a" / "x.json"),
+                        "--palette", str(tmp_path / "b" / "x.json"), "-o", str(out)],
+                 "outputs collide", capsys)
+    assert not out.exists()
