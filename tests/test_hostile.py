@@ -54,7 +54,8 @@ def png_header_only(path, width, height):
 
 # --- security: names from a stack never write outside the output folder ---------------------
 
-@pytest.mark.parametrize("name", ["../evil.png", "/tmp/evil.png", "", "a\0b.png", "sub/../../e.png"])
+@pytest.mark.parametrize("name", ["../evil.png", "/tmp/evil.png", "", "a\0b.png",
+                                  "sub/../../e.png"])
 def test_stack_names_cannot_escape(tmp_path, capsys, name):
     path = stack_file(tmp_path / "s.npz", names=["ok.png", name])
     palette = tmp_path / "p.json"
