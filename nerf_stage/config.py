@@ -10,6 +10,7 @@ built without the ``nerf`` extra.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field, fields
 from enum import StrEnum
 from pathlib import Path
@@ -56,6 +57,8 @@ class GridConfig:
     def __post_init__(self):
         _at_least(self, 1, "voxels", "features", "occupancy_every")
         _at_least(self, 0, "warmup_iters")
+        if self.view_frequencies is not None:
+            _at_least(self, 0, "view_frequencies")
         _positive(self, "lr", "network_lr", "step_voxels")
 
 
@@ -118,7 +121,7 @@ class TrainConfig:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
         if self.strategy == Strategy.TWO_STAGE and self.finetune_iters == 0:
             raise InputError("the two-stage strategy needs finetune_iters > 0")
-        if not self.opacity_weight >= 0:
+        if not 0 <= self.opacity_weight < math.inf:
             raise InputError(f"opacity_weight must be >= 0, got {self.opacity_weight}")
         if len(self.background) != 3 or not all(0 <= c <= 1 for c in self.background):
             raise InputError(f"background must be three numbers in [0, 1], got {self.background}")
@@ -220,5 +223,6 @@ def _at_least(config, low: int, *names: str) -> None:
 
 def _positive(config, *names: str) -> None:
     for name in names:
-        if not getattr(config, name) > 0:
-            raise InputError(f"{name} must be > 0, got {getattr(config, name)!r}")
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float)) and 0 < value < math.inf):
+            raise InputError(f"{name} must be a finite number > 0, got {value!r}")

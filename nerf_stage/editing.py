@@ -30,6 +30,7 @@ from .run import Run, load_run
 
 RENDER_FILE = "render.npz"
 RENDER_FORMAT = "palette-render/1"
+MAX_ORBIT = 3600  # views of a turntable
 
 
 @dataclass
@@ -80,8 +81,8 @@ def render_poses(run: Run, dataset, split: str | None, orbit: int | None):
     """Names and (N, 4, 4) poses of a split of the run's dataset, or of an orbit of N views."""
     train = dataset.indices("train")
     if orbit is not None:
-        if orbit < 1:
-            raise InputError(f"--orbit must be >= 1, got {orbit}")
+        if not 1 <= orbit <= MAX_ORBIT:
+            raise InputError(f"--orbit must be in [1, {MAX_ORBIT}], got {orbit}")
         return [f"orbit_{i:03d}" for i in range(orbit)], orbit_poses(dataset.poses[train],
                                                                     orbit, run.box.centre)
     ids = dataset.indices(split)
