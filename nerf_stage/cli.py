@@ -138,7 +138,7 @@ def _train(args) -> int:
     from .trainer import train
 
     config = config_from_args(TrainConfig, args)
-    data = Path(args.data)
+    data = Path(args.data).resolve()
     rundir = Path(args.output or data.with_name(f"{data.name}-{config.backbone}"))
     stack = read_stack(args.weights)
     dataset = load_dataset(data, config.background)

@@ -162,6 +162,8 @@ def decompose(
     check_weight_method(method, method_options)
     validate_method(palette_method, PALETTE_METHODS, "palette method")
     check_dtype(dtype)
+    if not max_pixels >= 1:
+        raise InputError(f"max_pixels must be at least 1, got {max_pixels}")
     timings = {}
     start = time.perf_counter()
     root, paths = find_images(inputs)

@@ -87,6 +87,8 @@ def find_images(inputs: list[str | os.PathLike]) -> tuple[Path, list[Path]]:
             paths.extend(found)
         elif item.is_file():
             paths.append(item)
+        elif item.exists():
+            raise InputError(f"input {item} is neither an image file nor a folder")
         else:
             raise InputError(f"input path does not exist: {item}")
     paths = list(dict.fromkeys(Path(os.path.abspath(p)) for p in paths))  # links keep names
