@@ -16,19 +16,19 @@ NERF := $(DEMO_OUT)/nerf
 # About 15 minutes on 2 CPU cores: photos, then a simulated scene through a weight NeRF.
 demo: $(BIN)/.installed
 	$(BIN)/palette-decompose examples/photos -k 6 -o $(DEMO_OUT)/weights.npz --layers $(DEMO_OUT)/layers --force
-	$(BIN)/python examples/edit_palette.py $(DEMO_OUT)/palette.json -o $(DEMO_OUT)/edited_palette.json --force
+	$(BIN)/python examples/edit_palette.py $(DEMO_OUT)/weights.palette.json -o $(DEMO_OUT)/edited_palette.json --force
 	$(BIN)/palette-recolor $(DEMO_OUT)/weights.npz --palette $(DEMO_OUT)/edited_palette.json -o $(DEMO_OUT)/recolored --force
 	$(BIN)/palette-harmonize $(DEMO_OUT)/weights.npz --template all -o $(DEMO_OUT)/harmonized/weights.npz --render $(DEMO_OUT)/harmonized --force
 	$(BIN)/nerf-stage simulate still-life $(NERF)/still-life --force
 	$(BIN)/palette-decompose $(NERF)/still-life/train -k 6 -o $(NERF)/weights.npz --force
 	$(BIN)/palette-harmonize $(NERF)/weights.npz --template best -o $(NERF)/harmonized.npz --render $(NERF)/harmonized --force
 	$(BIN)/nerf-stage train $(NERF)/still-life --weights $(NERF)/weights.npz -o $(NERF)/run --force
-	$(BIN)/python examples/edit_palette.py $(NERF)/palette.json -o $(NERF)/recolored.json --force
+	$(BIN)/python examples/edit_palette.py $(NERF)/weights.palette.json -o $(NERF)/recolored.json --force
 	$(BIN)/nerf-stage render $(NERF)/run --orbit 36 --palette $(NERF)/recolored.json --harmonize best -o $(NERF)/turntable --force
 	$(BIN)/nerf-stage eval $(NERF)/run
 	@echo
 	@echo "Demo outputs in $(DEMO_OUT)/:"
-	@echo "  palette.png, palette.json      extracted palette (swatch and JSON)"
+	@echo "  weights.palette.png, .json     extracted palette (swatch and JSON)"
 	@echo "  weights.npz                    weight stack (format palette-weights/1)"
 	@echo "  layers/                        one weight map per palette colour per photo"
 	@echo "  edited_palette.json            the edited palette"
@@ -36,7 +36,7 @@ demo: $(BIN)/.installed
 	@echo "  harmonized/contact_sheet.png   the first photo harmonised by each of the seven templates"
 	@echo "  harmonized/TEMPLATE/           every photo harmonised, hue_wheel.png, palette.png"
 	@echo "  nerf/still-life/               the simulated scene (Blender format, 130 views)"
-	@echo "  nerf/palette.png, weights.npz  its palette and weights from the training views"
+	@echo "  nerf/weights.npz, .palette.png its weights and palette from the training views"
 	@echo "  nerf/harmonized/               the training views harmonised, hue wheel"
 	@echo "  nerf/run/                      the weight NeRF (config.json, checkpoint.pt)"
 	@echo "  nerf/turntable/recolored.gif   novel views recoloured with nerf/recolored.json"

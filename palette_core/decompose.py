@@ -59,9 +59,10 @@ class Decomposition:
         return k is not None and max_error is None and len(self.stack.palette) < k
 
     def output_paths(self, output: str | Path) -> list[Path]:
-        """The stack, and beside it the palette swatch and JSON (docs/formats.md)."""
+        """The stack, and beside it the palette swatch and JSON named after it
+        (``w.npz``: ``w.palette.png``, ``w.palette.json``; docs/formats.md)."""
         output = Path(output)
-        return [output, output.parent / "palette.png", output.parent / "palette.json"]
+        return [output, output.with_suffix(".palette.png"), output.with_suffix(".palette.json")]
 
     def write(self, output: str | Path, layers: str | Path | None = None,
               force: bool = False) -> list[Path]:
@@ -123,7 +124,7 @@ def decompose(
     method: str = "mvc",
     dtype: str = "float32",
     method_options: dict | None = None,
-    palette_method: str = "hull",
+    palette_method: str = "refined",
     max_pixels: int = DEFAULT_MAX_PIXELS,
 ) -> Decomposition:
     """Decompose image files and folders into one shared palette and per-pixel weights.

@@ -12,15 +12,16 @@ import numpy as np
 
 from .hull import check_palette_size, extract_palette
 from .polytope import Polytope
+from .refine import refined_palette
 from .registry import call_method
 
-PALETTE_METHODS = {"hull": extract_palette}
+PALETTE_METHODS = {"hull": extract_palette, "refined": refined_palette}
 
 __all__ = ["PALETTE_METHODS", "check_palette_size", "palette_polytope"]
 
 
 def palette_polytope(colours: np.ndarray, counts: np.ndarray, k: int | None = 6,
-                     max_error: float | None = None, method: str = "hull",
+                     max_error: float | None = None, method: str = "refined",
                      **options) -> Polytope:
     """The palette polytope of (n, 3) distinct ``colours`` with (n,) pixel ``counts``.
 

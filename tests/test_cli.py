@@ -26,14 +26,14 @@ def test_decompose_then_recolor(photo_dir, tmp_path, capsys):
     assert [w.shape[:2] for w in stack.weights] == [(12, 16), (10, 9), (7, 11)]
     for w in stack.weights:
         weight_invariants(w.reshape(-1, w.shape[-1]), stack.palette, None)
-    assert (out / "palette.png").is_file()
+    assert (out / "w.palette.png").is_file()
     k = len(stack.palette)
-    assert len(json.loads((out / "palette.json").read_text())["palette"]) == k
+    assert len(json.loads((out / "w.palette.json").read_text())["palette"]) == k
     assert len(list((out / "layers").rglob("*.png"))) == 3 * k
 
     # Recolour with the unedited palette: the stack's own reconstruction comes back
     # (up to the 8-bit palette file and output rounding).
-    assert recolor.main([str(out / "w.npz"), "--palette", str(out / "palette.json"),
+    assert recolor.main([str(out / "w.npz"), "--palette", str(out / "w.palette.json"),
                          "-o", str(out / "same")]) == 0
     expected = np.clip(stack.weights[0] @ stack.palette, 0, 1) * 255
     again = np.asarray(Image.open(out / "same" / "a.png"), float)

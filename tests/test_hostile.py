@@ -344,10 +344,10 @@ def test_outputs_may_not_collide(photo_dir, tmp_path, capsys, rng):
     assert not (tmp_path / "w.npz").exists()
     expect_error(decompose.main, [str(photo_dir), "-o", str(photo_dir / "w.npz")],
                  "among the inputs", capsys)
-    (photo_dir / "a.png").rename(photo_dir / "palette.png")  # named like the output swatch
-    expect_error(decompose.main, [str(photo_dir / "palette.png"), "-o", str(photo_dir / "w.npz"),
+    (photo_dir / "a.png").rename(photo_dir / "w.palette.png")  # named like the output swatch
+    expect_error(decompose.main, [str(photo_dir / "w.palette.png"), "-o", str(photo_dir / "w.npz"),
                                   "--force"], "among the inputs", capsys)
-    assert (photo_dir / "palette.png").stat().st_size > 0
+    assert (photo_dir / "w.palette.png").stat().st_size > 0
 
 
 def test_outputs_respect_the_umask(photo_dir, tmp_path):

@@ -25,14 +25,15 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--max-error", type=float, default=None, metavar="E",
                         help="smallest palette with reconstruction RMSE <= E (0-255 scale); "
                              "with -k, at most K colours")
-    parser.add_argument("--palette-method", choices=sorted(PALETTE_METHODS), default="hull",
-                        help="palette method (default hull)")
+    parser.add_argument("--palette-method", choices=sorted(PALETTE_METHODS), default="refined",
+                        help="palette method: refined (hull simplification, then fitted to the "
+                             "pixels; the default) or hull (Tan et al. 2017 alone)")
     parser.add_argument("--method", choices=sorted(WEIGHT_METHODS), default="mvc",
                         help="weight method (default mvc)")
     add_method_options(parser, WEIGHT_METHODS)
     parser.add_argument("-o", "--output", default="weights.npz",
-                        help="weight stack to write (default weights.npz); palette.png and "
-                             "palette.json go beside it")
+                        help="weight stack to write (default weights.npz); its palette swatch "
+                             "and JSON go beside it (weights.palette.png, weights.palette.json)")
     parser.add_argument("--layers", metavar="DIR", default=None,
                         help="also write one weight-map PNG per palette colour per image here")
     parser.add_argument("--dtype", choices=("float32", "float16"), default="float32",
