@@ -117,8 +117,10 @@ def _smallest_within(colours, counts, k: int | None, max_error: float) -> Polyto
 
 def binned_colours(colours: np.ndarray, counts: np.ndarray,
                    bits: int = BIN_BITS) -> tuple[np.ndarray, np.ndarray]:
-    """Count-weighted mean colour (B, 3) and pixel share (B,) of each occupied bin of a
-    2^bits-per-channel grid."""
+    """Count-weighted mean colour (B, 3) and pixel share (B,) of each bin of a
+    2^bits-per-channel grid that holds pixels."""
+    used = counts > 0
+    colours, counts = colours[used], counts[used]
     q = np.minimum((colours * (1 << bits)).astype(np.int64), (1 << bits) - 1)
     code = (q[:, 0] << (2 * bits)) | (q[:, 1] << bits) | q[:, 2]
     _, inverse = np.unique(code, return_inverse=True)
