@@ -103,7 +103,7 @@ def test_box_qp_matches_brute_force(rng):
         m = rng.normal(size=(6, 6))
         a, b = m @ m.T + 0.1 * np.eye(6), rng.normal(size=6) * 3
         x = _box_qp(a, b, rng.uniform(0, 1, 6))
-        best = min((_objective(a, b, y) for y in rng.uniform(0, 1, (20000, 6))))
+        best = min(_objective(a, b, y) for y in rng.uniform(0, 1, (20000, 6)))
         assert _objective(a, b, x) <= best + 1e-12
         gradient = a @ x - b  # KKT
         assert np.all(gradient[(x > 1e-12) & (x < 1 - 1e-12)] ** 2 < 1e-16)
