@@ -93,11 +93,14 @@ def refined_palette(colours: np.ndarray, counts: np.ndarray, k: int | None = 6,
     if max_error is not None:
         return _smallest_within(colours, counts, k, max_error)
     start = extract_palette(colours, counts, k)
-    if start.dim < 3 or len(start.vertices) < k:
-        return start
+    if start.dim < 3 or len(polytope_from_points(colours).vertices) <= k:
+        return start  # degenerate, or the whole hull: exact
     bins, shares = binned_colours(colours, counts)
+    initial = start.vertices
+    if len(initial) < k:  # the clip to the cube merged colours: add the worst-explained bins
+        initial = _reseeded(start, k, bins, shares)
     refined = polytope_from_points(
-        refine_palette(start.vertices, bins, shares, common_colours(bins, shares)))
+        refine_palette(initial, bins, shares, common_colours(bins, shares)))
     if (len(refined.vertices) == k
             and polytope_rmse(colours, counts, refined) <= polytope_rmse(colours, counts, start)):
         return refined
@@ -138,12 +141,17 @@ def common_colours(bins: np.ndarray, shares: np.ndarray) -> np.ndarray:
 
 def refine_palette(palette: np.ndarray, bins: np.ndarray, shares: np.ndarray,
                    common: np.ndarray) -> np.ndarray:
-    """Alternate weight and palette steps from ``palette`` (K, 3) on binned colours, then
+    """Alternate weight and palette steps from ``palette`` (K, 3) on binned colours (and
+    once more after swapping the least-used colour for the worst-explained bin), then
     pull each colour towards the nearest common colour while that costs at most
     ``NEAR_COMMON_COST`` of the binned RMSE (farthest colours first)."""
     palette, error = _alternate(palette, bins, shares)
+    swapped, swapped_error = _alternate(_swapped(palette, bins, shares), bins, shares)
+    if swapped_error < error:
+        palette, error = swapped, swapped_error
     budget = error * (1 + NEAR_COMMON_COST) + 1e-9
-    for i in np.argsort(-_common_distance(palette, common)):
+    distance = _common_distance(palette, common)
+    for i in np.argsort(-distance)[: np.count_nonzero(distance > COMMON_RADIUS)]:
         target = _near_common(palette[i], common)
         for t in (1.0, 0.75, 0.5, 0.25):
             moved = palette.copy()
@@ -235,6 +243,18 @@ def _box_qp(a: np.ndarray, b: np.ndarray, x: np.ndarray, low: float = 0.0,
             break
         held[np.argmax(np.abs(gradient) * inward)] = False
     return np.clip(x, low, high)
+
+
+def _swapped(palette: np.ndarray, bins: np.ndarray, shares: np.ndarray) -> np.ndarray:
+    """The palette with its least-used colour replaced by the worst-explained bin: a move
+    that alternating steps cannot make (they only slide colours), tried once."""
+    poly = polytope_from_points(palette)
+    weights = rgb_to_mvc_weights(bins, poly)
+    residual = bins - weights @ poly.vertices
+    worst = np.argmax(shares * np.einsum("ij,ij->i", residual, residual))
+    swapped = poly.vertices.copy()
+    swapped[np.argmin(shares @ weights)] = bins[worst]
+    return swapped
 
 
 def _reseeded(poly: Polytope, k: int, bins: np.ndarray, shares: np.ndarray) -> np.ndarray:
