@@ -134,11 +134,11 @@ def targets(rows: list[dict]) -> None:
                     None)
 
     print("\nTargets")
-    demo = row("demo set", 6, "refined")
+    demo, demo_hull = row("demo set", 6, "refined"), row("demo set", 6, "hull")
     if demo:
         print(f"  demo set, K = 6: RMSE {demo['rmse']:.3f} (target <= 1.0), worst photo "
               f"{demo['worst']:.3f} (target <= 1.5); hull method "
-              f"{row('demo set', 6, 'hull')['rmse']:.3f} / {row('demo set', 6, 'hull')['worst']:.3f}")
+              f"{demo_hull['rmse']:.3f} / {demo_hull['worst']:.3f}")
     six = row("six stitched", 6, "refined")
     if six:
         before = row("six stitched", 6, "hull")

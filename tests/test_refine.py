@@ -68,7 +68,7 @@ def test_never_worse_than_the_hull_method(black_and_rainbow, rng):
         for k in (4, 5, 7, 10):
             hull = palette_polytope(cs.colours, cs.counts, k, method="hull")
             refined = palette_polytope(cs.colours, cs.counts, k, method="refined")
-            assert len(refined.vertices) == len(hull.vertices)
+            assert len(refined.vertices) == k  # the hull method's clip may merge colours
             assert polytope_rmse(cs.colours, cs.counts, refined) <= polytope_rmse(
                 cs.colours, cs.counts, hull) + 1e-9
 
