@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .colour_set import ColourSet
 from .errors import InputError
@@ -180,6 +179,8 @@ def decompose(
     poly = palette_polytope(colour_set.colours, colour_set.counts, k, max_error, palette_method)
     palette = poly.vertices.astype(np.float32)
     timings["palette"] = time.perf_counter() - start
+
+    from tqdm import tqdm
 
     start = time.perf_counter()
     produced = image_weights(colour_set, poly, method, **method_options)

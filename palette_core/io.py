@@ -15,8 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import png
-import tifffile
 from PIL import Image, UnidentifiedImageError
 
 from .errors import InputError
@@ -145,7 +143,7 @@ def load_image(path: str | os.PathLike, name: str | None = None,
                 pixels = _pil_to_array(im)
     except InputError:
         raise
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, png.Error) as exc:
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise InputError(f"cannot read image {path}: {exc}") from None
     if pixels.shape[-1] == 4:
         opaque = pixels[..., 3] > 0
@@ -183,6 +181,8 @@ def _is_16bit_rgb(path: Path, im: Image.Image) -> bool:
             header = f.read(26)
         return header[24] == 16 and header[25] in (2, 6)  # bit depth, colour type RGB(A)
     if im.format == "TIFF":
+        import tifffile
+
         with tifffile.TiffFile(path) as tif:
             page = tif.pages[0]
             return page.dtype == np.uint16 and page.samplesperpixel in (3, 4)
@@ -190,10 +190,20 @@ def _is_16bit_rgb(path: Path, im: Image.Image) -> bool:
 
 
 def _read_16bit_rgb(path: Path, im: Image.Image) -> np.ndarray:
+    """(H, W, 3 or 4) uint16 pixels of a 16-bit PNG (pypng) or TIFF (tifffile), imported
+    only for such files."""
     if im.format == "PNG":
-        width, height, rows, info = png.Reader(filename=str(path)).asDirect()
+        import png
+
+        try:
+            width, height, rows, info = png.Reader(filename=str(path)).asDirect()
+            rows = list(rows)
+        except png.Error as exc:
+            raise ValueError(str(exc)) from None
         planes = info["planes"]
         return np.vstack([np.asarray(r, np.uint16) for r in rows]).reshape(height, width, planes)
+    import tifffile
+
     with tifffile.TiffFile(path) as tif:
         page = tif.pages[0]
         pixels = page.asarray()
