@@ -6,8 +6,9 @@ import sys
 from pathlib import Path
 
 from palette_core.cli import ArgumentParser, run_cli
+from palette_core.errors import InputError
 from palette_core.palette_file import palette_to_hex
-from palette_core.stack import read_stack
+from palette_core.stack import DEFAULT_STACK, read_stack
 
 from .batch import ALL, BEST, StackHarmonization, harmonize_stack
 from .templates import TEMPLATES
@@ -21,7 +22,9 @@ def build_parser() -> ArgumentParser:
         description="Harmonise the palette of a weight stack with a hue template in HCL "
                     "(Tan, Echevarria and Gingold 2018); the weights stay as they are.",
     )
-    parser.add_argument("stack", help="weight stack (.npz) from palette-decompose")
+    parser.add_argument("stack", nargs="?", default=None,
+                        help="weight stack (.npz) from palette-decompose (default "
+                             f"./{DEFAULT_STACK}, where palette-decompose writes it)")
     parser.add_argument("--template", required=True, metavar="NAME",
                         help=f"one of {', '.join(TEMPLATES)}; '{BEST}' for the least cost; "
                              f"'{ALL}' for one result per template")
@@ -43,6 +46,12 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args) -> int:
+    if args.stack is None:
+        if not Path(DEFAULT_STACK).is_file():
+            raise InputError(f"no stack given and ./{DEFAULT_STACK} does not exist: make one with "
+                             f"palette-decompose IMAGES... (it writes ./{DEFAULT_STACK})")
+        args.stack = DEFAULT_STACK
+        print(f"using ./{DEFAULT_STACK}")
     result = harmonize_stack(read_stack(args.stack), args.template, args.strength)
     written = result.write(args.stack, args.output, args.render, args.force)
     if args.template in (BEST, ALL):

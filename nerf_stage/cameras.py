@@ -114,6 +114,18 @@ def blender_transforms(poses: np.ndarray, file_paths: list[str], fov_x_degrees: 
     }
 
 
+def nerfstudio_transforms(poses: np.ndarray, file_paths: list[str], width: int, height: int,
+                          fov_x_degrees: float) -> dict:
+    """A ``transforms.json`` dictionary (nerfstudio layout: pinhole intrinsics in pixels)."""
+    focal = focal_from_fov(width, fov_x_degrees)
+    return {
+        "camera_model": "OPENCV", "fl_x": focal, "fl_y": focal, "cx": width / 2,
+        "cy": height / 2, "w": width, "h": height,
+        "frames": [{"file_path": path, "transform_matrix": pose.tolist()}
+                   for path, pose in zip(file_paths, poses)],
+    }
+
+
 def orbit_poses(poses: np.ndarray, n: int, centre) -> np.ndarray:
     """(n, 4, 4) turntable around ``centre`` at the cameras' mean distance and elevation.
 

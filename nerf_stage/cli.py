@@ -10,11 +10,20 @@ import sys
 from pathlib import Path
 
 from palette_core.cli import ArgumentParser, add_config_arguments, config_from_args, run_cli
+from palette_core.errors import InputError
 from palette_core.outputs import check_outdir
 from palette_core.palette_file import read_palette_json
+from palette_core.stack import DEFAULT_STACK
 
-from .config import TrainConfig
-from .simulation import BUILTIN_SCENES, load_scene, simulate, with_overrides, write_dataset
+from .config import CONFIG_ENV, TrainConfig
+from .simulation import (
+    BUILTIN_SCENES,
+    LAYOUTS,
+    load_scene,
+    simulate,
+    with_overrides,
+    write_dataset,
+)
 
 PROG = "nerf-stage"
 
@@ -39,6 +48,10 @@ def build_parser() -> ArgumentParser:
     sim.add_argument("--views", type=int, nargs=3, default=None, metavar=("TRAIN", "VAL", "TEST"),
                      help="views per split (default: the scene's)")
     sim.add_argument("--seed", type=int, default=None, help="random seed (default: the scene's)")
+    sim.add_argument("--layout", choices=LAYOUTS, default="blender",
+                     help="blender (default: transforms_{train,val,test}.json, transport "
+                          "weights) or nerfstudio (a capture folder: images/ and "
+                          "transforms.json, for palette-decompose images/ and nerf-stage train)")
     sim.add_argument("--force", action="store_true", help="replace a non-empty OUTDIR")
     sim.set_defaults(run=_simulate)
     _add_train(commands)
@@ -52,14 +65,17 @@ def _add_train(commands) -> None:
         "train", help="train a weight NeRF on a dataset and its weight stack",
         description="Train a NeRF whose colour head outputs the weight stack's M channels "
                     "(PaletteNeRF). Writes RUNDIR/config.json and RUNDIR/checkpoint.pt. "
-                    "Every field of the training config is a flag.")
-    train.add_argument("data", metavar="DATADIR", help="Blender or nerfstudio dataset folder")
-    train.add_argument("--weights", required=True, metavar="STACK",
-                       help="weight stack (.npz) of the training frames: palette-decompose's, "
-                            "or weights.npz of a simulated scene")
+                    "Every field of the training config is a flag; their defaults can come "
+                    f"from a JSON file named by the environment variable {CONFIG_ENV}.")
+    train.add_argument("data", metavar="DATADIR", nargs="?", default=".",
+                       help="Blender or nerfstudio dataset folder (default: this folder)")
+    train.add_argument("--weights", default=None, metavar="STACK",
+                       help="weight stack (.npz) of the training frames (default: "
+                            f"DATADIR/{DEFAULT_STACK}, where palette-decompose images/ run in "
+                            "DATADIR and nerf-stage simulate put it)")
     train.add_argument("-o", "--output", metavar="RUNDIR", default=None,
                        help="run folder (default: DATADIR-BACKBONE beside DATADIR)")
-    add_config_arguments(train, TrainConfig)
+    add_config_arguments(train, TrainConfig.defaults())
     again = train.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue RUNDIR's checkpoint")
     again.add_argument("--force", action="store_true", help="start RUNDIR afresh")
@@ -118,12 +134,12 @@ def _simulate(args) -> int:
     check_outdir(args.outdir, args.force)
     sim = simulate(scene)
     spec = args.scene if args.scene in BUILTIN_SCENES else str(Path(args.scene).resolve())
-    written = write_dataset(sim, scene, args.outdir, spec, force=args.force)
+    written = write_dataset(sim, scene, args.outdir, spec, force=args.force, layout=args.layout)
     cam, render = scene.camera, scene.render
     print(f"{scene.name}: {len(sim.names)} views of {cam.width}x{cam.height}, {render.spp} spp, "
           f"{render.light} light" + (f", order {sim.order}" if sim.weights is not None else "")
           + f", traced in {sim.seconds:.1f} s")
-    if sim.weights is not None:
+    if sim.weights is not None and args.layout == "blender":
         print(f"palette ({len(sim.palette)} editable materials, {sim.weights.shape[-1]} transport "
               f"terms): see {args.outdir}/materials.json")
     print(f"wrote {len(written)} files to {args.outdir}")
@@ -140,10 +156,16 @@ def _train(args) -> int:
     config = config_from_args(TrainConfig, args)
     data = Path(args.data).resolve()
     rundir = Path(args.output or data.with_name(f"{data.name}-{config.backbone}"))
-    stack = read_stack(args.weights)
     dataset = load_dataset(data, config.background)
-    run = train(config, dataset, stack, rundir, resume=args.resume, force=args.force,
-                weights_path=str(Path(args.weights).resolve()))
+    weights = Path(args.weights) if args.weights else data / DEFAULT_STACK
+    if args.weights is None and not weights.is_file():
+        raise InputError(f"{weights} does not exist: make it with palette-decompose images/ "
+                         "in the dataset folder, or give --weights STACK")
+    print(f"dataset: {data} ({dataset.layout} layout, {len(dataset.names)} frames, "
+          f"{len(dataset.indices('train'))} for training)")
+    print(f"weights: {weights.resolve()}", flush=True)
+    run = train(config, dataset, read_stack(weights), rundir, resume=args.resume,
+                force=args.force, weights_path=str(weights.resolve()))
     log = run.record.log
     print(f"trained {config.backbone} ({config.strategy}) for {log[-1]['iteration']} "
           f"iterations in {log[-1]['seconds']:.0f} s, last batch PSNR {log[-1]['psnr']:.2f} dB")

@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import asdict, dataclass, field, fields
 from enum import StrEnum
 from pathlib import Path
 
 from palette_core.errors import InputError
+
+#: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
+CONFIG_ENV = "NERF_STAGE_CONFIG"
 
 
 class Backbone(StrEnum):
@@ -171,6 +175,25 @@ class TrainConfig:
 
     def save(self, path: Path) -> None:
         path.write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def defaults(cls) -> TrainConfig:
+        """The defaults of ``nerf-stage train``: the dataclass's, or, where the environment
+        variable ``CONFIG_ENV`` names a JSON file, that file's fields over them (any subset;
+        backbone settings as nested objects, ``{"grid": {"voxels": 32768}}``)."""
+        path = os.environ.get(CONFIG_ENV)
+        if not path:
+            return cls()
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, RecursionError, json.JSONDecodeError) as exc:
+            raise InputError(f"cannot read {CONFIG_ENV}={path}: {exc}") from None
+        if not isinstance(data, dict):
+            raise InputError(f"{CONFIG_ENV}={path}: expected an object of config fields")
+        base = cls().to_dict()
+        for group in _NESTED:
+            data[group] = {**base[group], **data.get(group, {})}
+        return cls.from_dict({**base, **data}, f"{CONFIG_ENV}={path}")
 
     @classmethod
     def load(cls, path: Path) -> TrainConfig:

@@ -51,6 +51,8 @@ class Dataset:
         Colours composited on ``background``.
     alpha : (N, H, W) float32
     background : (3,) float64
+    layout : str
+        ``blender`` or ``nerfstudio``: the files it was read from.
     """
 
     root: Path
@@ -61,6 +63,7 @@ class Dataset:
     images: np.ndarray
     alpha: np.ndarray
     background: np.ndarray
+    layout: str = "blender"
 
     def indices(self, split: str) -> np.ndarray:
         """Frame indices of one split."""
@@ -80,17 +83,20 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> Dataset
     root = Path(root)
     background = np.asarray(background, np.float64).reshape(3)
     if (root / "transforms_train.json").is_file():
+        layout = "blender"
         names, splits, poses, angle = _read_blender(root)
         rgba = [_read_rgba(root / name) for name in names]
         height, width = rgba[0].shape[:2]
         focal = focal_length(width, angle)
         intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
     elif (root / "transforms.json").is_file():
+        layout = "nerfstudio"
         names, splits, poses, intrinsics = _read_nerfstudio(root)
         rgba = [_read_rgba(root / name) for name in names]
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout) "
-                         "nor transforms.json (nerfstudio layout)")
+                         "nor transforms.json (nerfstudio layout): make one with nerf-stage "
+                         "simulate SCENE DIR [--layout nerfstudio], or capture one")
     wrong = [n for n, im in zip(names, rgba) if im.shape[:2] != (intrinsics.height,
                                                                    intrinsics.width)]
     if wrong:
@@ -100,7 +106,7 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> Dataset
     alpha = rgba[..., 3]
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
-                   alpha, background)
+                   alpha, background, layout)
 
 
 def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> np.ndarray:

@@ -19,6 +19,8 @@ from .basis import Basis, n_terms
 from .errors import InputError
 
 FORMAT = "palette-weights/1"
+#: Where ``palette-decompose`` writes its stack, and where the other commands look for one.
+DEFAULT_STACK = "weights.npz"
 
 
 @dataclass

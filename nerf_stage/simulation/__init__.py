@@ -4,6 +4,7 @@ editable materials they hit, and Blender-format datasets with transport weights.
 
 from .scene import BUILTIN_SCENES, Scene, load_scene, parse_scene
 from .simulate import (
+    LAYOUTS,
     Simulation,
     SimulationRecord,
     render_terms,
@@ -16,6 +17,7 @@ from .simulate import (
 
 __all__ = [
     "BUILTIN_SCENES",
+    "LAYOUTS",
     "Scene",
     "Simulation",
     "SimulationRecord",

@@ -25,7 +25,13 @@ from palette_core.outputs import publish_folder, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, write_stack
 
-from ..cameras import SPLIT_PHASES, blender_transforms, focal_from_fov, rig_poses
+from ..cameras import (
+    SPLIT_PHASES,
+    blender_transforms,
+    focal_from_fov,
+    nerfstudio_transforms,
+    rig_poses,
+)
 from .geometry import next_term_table, scene_arrays
 from .kernels import trace_view
 from .scene import LIMITS, MAX_TERM_BYTES, SPLITS, Scene
@@ -270,32 +276,55 @@ def _require_grey_fixed(scene: Scene) -> None:
                              "weights need white (grey) lights")
 
 
-def write_dataset(sim: Simulation, scene: Scene, outdir: str | os.PathLike, spec: str,
-                  force: bool = False) -> list[str]:
-    """Write ``sim`` as a Blender-format dataset into ``outdir``, atomically.
+#: Dataset layouts ``write_dataset`` writes.
+LAYOUTS = ("blender", "nerfstudio")
 
-    The folder is built beside ``outdir`` and renamed onto it at the end
-    (``outputs.publish_folder``); an existing non-empty ``outdir`` is replaced only
-    with ``force``.
+
+def write_dataset(sim: Simulation, scene: Scene, outdir: str | os.PathLike, spec: str,
+                  force: bool = False, layout: str = "blender") -> list[str]:
+    """Write ``sim`` as a dataset into ``outdir``, atomically.
+
+    ``blender``: ``transforms_{train,val,test}.json``, ``<split>/r_<i>.png`` and, with
+    editable materials, ``weights.npz`` and ``materials.json``. ``nerfstudio``: a
+    capture folder, ``images/frame_<i>.png`` and ``transforms.json`` only, ready for
+    ``palette-decompose images/`` and ``nerf-stage train`` in it. The folder is built
+    beside ``outdir`` and renamed onto it at the end (``outputs.publish_folder``); an
+    existing non-empty ``outdir`` is replaced only with ``force``.
 
     Returns
     -------
     list of str
         The files written, relative to ``outdir``.
     """
+    if layout not in LAYOUTS:
+        raise InputError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
     with publish_folder(outdir, force) as staging:
+        if layout == "nerfstudio":
+            return _write_nerfstudio(sim, scene, staging)
         return _write_files(sim, scene, staging, spec)
 
 
-def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[str]:
-    written = []
+def _write_images(sim: Simulation, root: Path, names: list[str]) -> None:
+    """Straight-alpha RGBA PNGs of the views (alpha: the share of rays that hit)."""
     alpha = sim.alpha[..., None]
     straight = np.divide(sim.radiance, alpha, out=np.zeros_like(sim.radiance), where=alpha > 0)
-    rgba = np.concatenate([straight, alpha], axis=-1)
-    for name, image in zip(sim.names, rgba):
+    for name, image in zip(names, np.concatenate([straight, alpha], axis=-1)):
         (root / name).parent.mkdir(exist_ok=True)
         save_image(root / name, image)
-        written.append(name)
+
+
+def _write_nerfstudio(sim: Simulation, scene: Scene, root: Path) -> list[str]:
+    names = [f"images/frame_{i + 1:05d}.png" for i in range(len(sim.names))]
+    _write_images(sim, root, names)
+    cam = scene.camera
+    frames = nerfstudio_transforms(sim.poses, names, cam.width, cam.height, cam.fov)
+    (root / "transforms.json").write_text(json.dumps(frames, indent=2) + "\n")
+    return names + ["transforms.json"]
+
+
+def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[str]:
+    _write_images(sim, root, sim.names)
+    written = list(sim.names)
     for split in SPLITS:
         index = [i for i, name in enumerate(sim.names) if name.startswith(split + "/")]
         frames = blender_transforms(sim.poses[index], [sim.names[i][:-4] for i in index],

@@ -99,20 +99,22 @@ def _docstring_entry(function: Callable, name: str) -> str:
     return " ".join(match.group(1).split()) if match else name
 
 
-def add_config_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
-    """One flag per field of dataclass ``cls``, nested dataclasses prefixed by their field name
-    (``TrainConfig.grid.voxels`` -> ``--grid-voxels``), typed by the annotations, documented
-    by the field docstrings, defaulting to the field defaults. Enums give choices; tuples
-    take one value per element.
+def add_config_arguments(parser: argparse.ArgumentParser, defaults, prefix: str = "") -> None:
+    """One flag per field of the dataclass instance ``defaults``, nested dataclasses prefixed by
+    their field name (``TrainConfig.grid.voxels`` -> ``--grid-voxels``), typed by the
+    annotations, documented by the field docstrings, defaulting to ``defaults``' values.
+    Enums give choices; tuples take one value per element.
     """
+    cls = type(defaults)
     hints = typing.get_type_hints(cls)
     docs = _field_docstrings(cls)
     for f in dataclasses.fields(cls):
         kind, name = hints[f.name], prefix + f.name
+        default = getattr(defaults, f.name)
         if dataclasses.is_dataclass(kind):
-            add_config_arguments(parser, kind, name + "_")
+            add_config_arguments(parser, default, name + "_")
             continue
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        default = str(default) if isinstance(default, enum.Enum) else default
         options = {"dest": name, "default": default,
                    "help": f"{docs.get(f.name, '').replace('``', '')} (default {_shown(default)})"}
         if typing.get_origin(kind) is tuple:

@@ -8,6 +8,7 @@ from ..decompose import decompose
 from ..io import DEFAULT_MAX_PIXELS
 from ..palette_file import palette_to_hex
 from ..palettes import PALETTE_METHODS
+from ..stack import DEFAULT_STACK
 from ..weights import WEIGHT_METHODS
 from . import ArgumentParser, add_method_options, given_options, run_cli
 
@@ -31,7 +32,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--method", choices=sorted(WEIGHT_METHODS), default="mvc",
                         help="weight method (default mvc)")
     add_method_options(parser, WEIGHT_METHODS)
-    parser.add_argument("-o", "--output", default="weights.npz",
+    parser.add_argument("-o", "--output", default=DEFAULT_STACK,
                         help="weight stack to write (default weights.npz); its palette swatch "
                              "and JSON go beside it (weights.palette.png, weights.palette.json)")
     parser.add_argument("--layers", metavar="DIR", default=None,
