@@ -10,11 +10,12 @@ import numpy as np
 from tqdm import tqdm
 
 from palette_core.basis import weights_to_rgb
+from palette_core.collection import write_zarr_stack
 from palette_core.errors import InputError
-from palette_core.outputs import atomic_outputs, check_writable, inside, save_image
+from palette_core.outputs import atomic_outputs, check_outdir, check_writable, inside, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.render import palette_swatch
-from palette_core.stack import WeightStack, write_stack
+from palette_core.stack import WeightStack, is_zarr, write_stack
 
 from .fit import TemplateFit, fit_all_templates, palette_shares
 from .hcl import srgb_to_hcl
@@ -50,17 +51,19 @@ class StackHarmonization:
     many: bool
 
     def stack_paths(self, source: Path, output: str | Path | None) -> dict[str, Path]:
-        """Per template, the stack to write: ``output``, or ``SOURCE_TEMPLATE.npz`` beside the
-        source; with all templates each name is appended to the stem."""
+        """Per template, the stack to write: ``output``, or ``SOURCE_TEMPLATE.npz`` (``.zarr``
+        for a Zarr source) beside the source; with all templates each name is appended to
+        the stem."""
         names = list(self.results)
         if output is None:
-            return {name: source.with_name(f"{source.stem}_{name}.npz") for name in names}
+            suffix = ".zarr" if is_zarr(source) else ".npz"
+            return {name: source.with_name(f"{source.stem}_{name}{suffix}") for name in names}
         output = Path(output)
-        if output.suffix != ".npz":
-            raise InputError(f"output must end in .npz, got {output}")
+        if output.suffix not in (".npz", ".zarr"):
+            raise InputError(f"output must end in .npz or .zarr, got {output}")
         if not self.many:
             return {names[0]: output}
-        return {name: output.with_name(f"{output.stem}_{name}.npz") for name in names}
+        return {name: output.with_name(f"{output.stem}_{name}{output.suffix}") for name in names}
 
     def render_paths(self, folder: Path) -> dict[str, list[Path]]:
         """Per template: the recoloured images, then hue_wheel.png and palette.png (one
@@ -89,12 +92,19 @@ class StackHarmonization:
         stacks = self.stack_paths(Path(source), output)
         renders = self.render_paths(Path(render)) if render else {}
         sheet = Path(render) / "contact_sheet.png" if render and self.many else None
-        check_writable([*stacks.values(), *(p for ps in renders.values() for p in ps),
+        zarrs = {name: path for name, path in stacks.items() if is_zarr(path)}
+        check_writable([*(p for p in stacks.values() if p not in zarrs.values()),
+                        *(p for ps in renders.values() for p in ps),
                         *([sheet] if sheet else [])], force)
+        for path in zarrs.values():
+            check_outdir(path, force)
+        for name, path in zarrs.items():
+            write_zarr_stack(self.harmonized_stack(name), path, force)
         with atomic_outputs(force) as stage:
             for name, path in stacks.items():
-                with open(stage(path), "wb") as f:
-                    write_stack(self.harmonized_stack(name), f)
+                if name not in zarrs:
+                    with open(stage(path), "wb") as f:
+                        write_stack(self.harmonized_stack(name), f)
             if renders:
                 self._write_renders(renders, stage)
             if sheet:

@@ -84,8 +84,15 @@ def write_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None =
     np.savez(file, **arrays)
 
 
+def is_zarr(path: str | os.PathLike) -> bool:
+    """Whether ``path`` names a Zarr store (``NAME.zarr``, a folder, or an fsspec URL)."""
+    text = str(path)
+    return text.rstrip("/").endswith(".zarr") or "://" in text or Path(path).is_dir()
+
+
 def read_stack(path: str | os.PathLike) -> WeightStack:
-    """Read and validate an NPZ weight stack.
+    """Read and validate a weight stack: NPZ, or a Zarr store (``collection.read_zarr_stack``,
+    whose weights are read lazily).
 
     Only the keys of the format are read, and each array's declared shape is
     checked against its stored size before it is loaded, so a crafted file can
@@ -98,6 +105,10 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
         (the message names the key): names must be distinct relative paths,
         weights finite, the palette in [0, 1].
     """
+    if is_zarr(path):
+        from .collection import read_zarr_stack
+
+        return read_zarr_stack(str(path))
     path = Path(path)
     if not path.is_file():
         raise InputError(f"weight stack {path} does not exist")

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 
+from ..collection import decompose_collection, is_video
 from ..decompose import decompose
+from ..errors import InputError
 from ..io import DEFAULT_MAX_PIXELS
 from ..palette_file import palette_to_hex
 from ..palettes import PALETTE_METHODS
-from ..stack import DEFAULT_STACK
+from ..stack import DEFAULT_STACK, is_zarr
 from ..weights import WEIGHT_METHODS
 from . import ArgumentParser, add_method_options, given_options, run_cli
 
@@ -42,6 +45,17 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--max-pixels", type=int, default=DEFAULT_MAX_PIXELS, metavar="N",
                         help="refuse images larger than N pixels, from their header, before "
                              f"decoding (default {DEFAULT_MAX_PIXELS})")
+    collection = parser.add_argument_group(
+        "collections", "with -o NAME.zarr (needed for videos) the images and frames are read "
+        "twice, one at a time, into a chunked Zarr stack: memory does not grow with the "
+        "collection")
+    collection.add_argument("--workers", type=int, default=None, metavar="N",
+                            help="run both passes on a local dask cluster of N processes")
+    collection.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                            help="run both passes on the dask.distributed cluster at ADDRESS "
+                                 "(the store must be a path or URL all workers can write)")
+    collection.add_argument("--resume", action="store_true",
+                            help="finish a store whose second pass was stopped")
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     return parser
 
@@ -51,6 +65,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args) -> int:
+    if is_zarr(args.output) or any(is_video(path) for path in args.inputs):
+        return _run_collection(args)
+    if args.workers or args.scheduler or args.resume:
+        raise InputError("--workers, --scheduler and --resume need -o NAME.zarr")
     result = decompose(args.inputs, args.k, args.max_error, args.method, args.dtype,
                        given_options(args, WEIGHT_METHODS), args.palette_method, args.max_pixels)
     written = result.write(args.output, args.layers, args.force)
@@ -67,6 +85,50 @@ def _run(args) -> int:
     print("time: " + ", ".join(f"{stage} {t:.2f} s" for stage, t in result.timings.items()))
     print("wrote " + ", ".join(map(str, written)))
     return 0
+
+
+def _run_collection(args) -> int:
+    if not is_zarr(args.output):
+        raise InputError(f"videos are decomposed into a Zarr stack: give -o NAME.zarr, not "
+                         f"{args.output}")
+    if args.layers or given_options(args, WEIGHT_METHODS) or args.method != "mvc":
+        raise InputError("a Zarr stack holds mean value coordinates, without --layers")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {args.workers}")
+    with dask_client(args.workers, args.scheduler) as client:
+        done = decompose_collection(args.inputs, args.output, args.k, args.max_error,
+                                    args.palette_method, args.dtype, args.max_pixels, client,
+                                    args.resume, args.force)
+    palette = done.palette.vertices
+    megapixels = done.counts.sum() / 1e6
+    print(f"palette ({len(palette)} colours): {' '.join(palette_to_hex(palette))}")
+    print(f"{len(done.names)} images and frames, {megapixels:.1f} Mpx, "
+          f"{len(done.codes)} distinct colours")
+    print("time: " + ", ".join(f"{stage} {t:.2f} s" for stage, t in done.timings.items()))
+    print(f"wrote {args.output}")
+    return 0
+
+
+@contextlib.contextmanager
+def dask_client(workers: int | None, scheduler: str | None):
+    """A dask.distributed client: of a local cluster of ``workers`` processes, or of the
+    cluster at ``scheduler``; None when neither is given."""
+    if workers is None and scheduler is None:
+        yield None
+        return
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
+        with client:
+            yield client
+        return
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        yield client
 
 
 if __name__ == "__main__":

@@ -1,0 +1,502 @@
+"""Collections beyond memory: two streaming passes into a chunked Zarr weight stack.
+
+Pass 1 reads the images and video frames one at a time and merges their exact
+colour counts (colours packed at 16 bits per channel, sparse: sorted codes and
+counts); the palette comes from the merged counts, as for ``decompose``. Pass 2
+computes the mean value coordinates of every distinct colour once and writes
+each frame's weights into its own chunk of ``weights.zarr`` (docs/formats.md).
+Memory holds one frame and the distinct colours, never the collection.
+
+Both passes run on a dask.distributed cluster when one is given (``client``):
+pass 1 as a tree reduction of the per-task counts, pass 2 as one task per group
+of frames, each writing its own chunks of the store; the palette is the same to
+the bit. A store records the frames it holds (``complete``), so a pass 2 that
+was killed resumes where it stopped.
+
+Videos are anything PyAV reads (``VIDEO_SUFFIXES``); their frames are named
+``clip.mp4#000123`` and stored as one (F, H, W, K) array chunked per frame.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .basis import Basis, n_terms
+from .errors import InputError
+from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, load_image
+from .mvc import rgb_to_mvc_weights
+from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
+from .polytope import Polytope
+from .registry import validate_method
+from .stack import FORMAT, WeightStack, check_dtype, check_names
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
+#: Megapixels of one task: a whole image, or a run of frames of one video.
+TASK_MEGAPIXELS = 8.0
+_MASK = (1 << 16) - 1
+
+
+@dataclass(frozen=True)
+class Source:
+    """One image file or one video of a collection.
+
+    Attributes
+    ----------
+    path : str
+    name : str
+        Path relative to the collection's root.
+    frames : int
+        1 for an image.
+    height, width : int
+    fps : float or None
+        Frames per second of a video.
+    """
+
+    path: str
+    name: str
+    frames: int
+    height: int
+    width: int
+    fps: float | None = None
+
+    @property
+    def video(self) -> bool:
+        return self.fps is not None
+
+    def frame_names(self) -> list[str]:
+        return [f"{self.name}#{i:06d}" for i in range(self.frames)] if self.video else [self.name]
+
+
+def is_video(path: str | os.PathLike) -> bool:
+    return Path(path).suffix.lower() in VIDEO_SUFFIXES
+
+
+def find_sources(inputs: list, max_pixels: int = DEFAULT_MAX_PIXELS) -> list[Source]:
+    """Images and videos under ``inputs`` (files and folders, recursively, sorted), probed.
+
+    Raises
+    ------
+    InputError
+        For a missing path, an empty folder, an unreadable file, or a frame larger than
+        ``max_pixels``.
+    """
+    if not inputs:
+        raise InputError("no input given: name image or video files or folders")
+    suffixes = IMAGE_SUFFIXES + VIDEO_SUFFIXES
+    paths: list[Path] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            found = sorted(p for p in item.rglob("*")
+                           if p.is_file() and p.suffix.lower() in suffixes)
+            if not found:
+                raise InputError(f"no images or videos found in folder {item}")
+            paths += found
+        elif item.is_file():
+            paths.append(item)
+        else:
+            raise InputError(f"input path does not exist: {item}")
+    paths = list(dict.fromkeys(Path(os.path.abspath(p)) for p in paths))
+    root = Path(os.path.commonpath([p.parent for p in paths]))
+    return [_probe(p, p.relative_to(root).as_posix(), max_pixels) for p in paths]
+
+
+def _probe(path: Path, name: str, max_pixels: int) -> Source:
+    if not is_video(path):
+        from .io import open_image
+
+        with open_image(path, max_pixels) as im:
+            return Source(str(path), name, 1, im.height, im.width)
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            frames = stream.frames or sum(1 for _ in container.decode(video=0))
+            fps = float(stream.average_rate or stream.guessed_rate or 25)
+            height, width = stream.codec_context.height, stream.codec_context.width
+    except (av.FFmpegError, IndexError, OSError) as exc:
+        raise InputError(f"cannot read video {path}: {exc}") from None
+    if width * height > max_pixels:
+        raise InputError(f"video {path} is {width}x{height}, more than --max-pixels "
+                         f"{max_pixels} allows")
+    if frames < 1:
+        raise InputError(f"video {path} has no frames")
+    return Source(str(path), name, frames, height, width, fps)
+
+
+def read_frames(source: Source, start: int = 0, stop: int | None = None,
+                max_pixels: int = DEFAULT_MAX_PIXELS) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(H, W, 3) uint8/uint16 pixels and (H, W) opaque mask of frames ``start:stop``."""
+    stop = source.frames if stop is None else stop
+    if not source.video:
+        image = load_image(source.path, source.name, max_pixels)
+        if (image.pixels.shape[0], image.pixels.shape[1]) != (source.height, source.width):
+            raise InputError(f"{source.path} changed while it was read")
+        yield image.pixels, image.opaque
+        return
+    import av
+
+    with av.open(source.path) as container:
+        for index, frame in enumerate(container.decode(video=0)):
+            if index >= stop:
+                break
+            if index >= start:
+                pixels = frame.to_ndarray(format="rgb24")
+                yield pixels, np.ones(pixels.shape[:2], bool)
+
+
+def _codes(pixels: np.ndarray) -> np.ndarray:
+    """(H, W, 3) pixels -> (H W,) int64 codes at 16 bits per channel (8-bit values widened)."""
+    p = pixels.reshape(-1, 3).astype(np.int64)
+    if pixels.dtype == np.uint8:
+        p *= 257
+    return (p[:, 0] << 32) | (p[:, 1] << 16) | p[:, 2]
+
+
+def _decode(codes: np.ndarray) -> np.ndarray:
+    """(D,) codes -> (D, 3) float64 colours in [0, 1]."""
+    return np.stack([codes >> 32, (codes >> 16) & _MASK, codes & _MASK], axis=-1) / float(_MASK)
+
+
+@dataclass(frozen=True)
+class Task:
+    """Frames ``start:stop`` of one source, and where they go in the stack's frame list."""
+
+    source: Source
+    start: int
+    stop: int
+    first: int  # index of frame ``start`` among all frames of the collection
+
+
+def plan_tasks(sources: list[Source]) -> list[Task]:
+    """Split the collection into tasks of about ``TASK_MEGAPIXELS`` each."""
+    tasks, first = [], 0
+    for source in sources:
+        per_task = max(1, int(TASK_MEGAPIXELS * 1e6 // (source.height * source.width)))
+        for start in range(0, source.frames, per_task):
+            stop = min(source.frames, start + per_task)
+            tasks.append(Task(source, start, stop, first + start))
+        first += source.frames
+    return tasks
+
+
+def count_task(task: Task, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[np.ndarray, np.ndarray]:
+    """Pass 1 of one task: sorted distinct codes of its opaque pixels and their counts, and
+    (with count 0) the codes of its transparent ones."""
+    merged = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    for pixels, opaque in read_frames(task.source, task.start, task.stop, max_pixels):
+        codes = _codes(pixels)
+        seen, counts = np.unique(codes[opaque.ravel()], return_counts=True)
+        hidden = np.unique(codes[~opaque.ravel()])
+        merged = merge_counts(merged, (np.concatenate([seen, hidden]),
+                                       np.concatenate([counts, np.zeros(len(hidden), np.int64)])))
+    return merged
+
+
+def merge_counts(a: tuple[np.ndarray, np.ndarray],
+                 b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Sum of two sparse count tables (sorted codes, counts)."""
+    codes, inverse = np.unique(np.concatenate([a[0], b[0]]), return_inverse=True)
+    return codes, np.bincount(inverse, np.concatenate([a[1], b[1]]), len(codes)).astype(np.int64)
+
+
+@dataclass
+class Collection:
+    """What pass 1 found: the sources, the distinct colours, the palette."""
+
+    sources: list[Source]
+    codes: np.ndarray  # (D,) sorted distinct codes
+    counts: np.ndarray  # (D,) opaque pixels per colour
+    palette: Polytope
+    timings: dict[str, float]
+
+    @property
+    def names(self) -> list[str]:
+        return [name for source in self.sources for name in source.frame_names()]
+
+
+def decompose_collection(inputs: list, output: str, k: int | None = None,
+                         max_error: float | None = None, palette_method: str = "refined",
+                         dtype: str = "float32", max_pixels: int = DEFAULT_MAX_PIXELS,
+                         client=None, resume: bool = False, force: bool = False,
+                         progress: bool = True) -> Collection:
+    """Decompose images and videos into a Zarr weight stack ``output`` in two streaming passes.
+
+    Parameters
+    ----------
+    client : dask.distributed.Client, optional
+        Run both passes on its cluster; ``output`` must be a path or fsspec URL that
+        every worker can write.
+    resume : bool
+        Continue a store whose pass 2 was stopped (same inputs and palette settings).
+    force : bool
+        Replace an existing store.
+
+    Raises
+    ------
+    InputError
+        On unreadable inputs, invalid options, or an existing store (without ``force`` or
+        ``resume``).
+    """
+    k = check_palette_size(k, max_error)
+    validate_method(palette_method, PALETTE_METHODS, "palette method")
+    check_dtype(dtype)
+    exists = _store_exists(output)
+    if exists and not (force or resume):
+        raise InputError(f"output {output} already exists (use --force to replace it or "
+                         "--resume to finish it)")
+    if resume and not exists:
+        raise InputError(f"--resume: {output} does not exist")
+    timings = {}
+    start = time.perf_counter()
+    sources = find_sources(inputs, max_pixels)
+    tasks = plan_tasks(sources)
+    total_mp = sum(s.frames * s.height * s.width for s in sources) / 1e6
+    codes, counts = _pass1(tasks, max_pixels, client, progress, total_mp)
+    if not counts.any():
+        raise InputError("every pixel of every image is fully transparent: there are no colours "
+                         "to take a palette from")
+    timings["pass1"] = time.perf_counter() - start
+    start = time.perf_counter()
+    poly = palette_polytope(_decode(codes), counts, k, max_error, palette_method)
+    timings["palette"] = time.perf_counter() - start
+    collection = Collection(sources, codes, counts, poly, timings)
+    start = time.perf_counter()
+    store = _open_store(output, collection, k, max_error, palette_method, dtype, resume)
+    weights = rgb_to_mvc_weights(_decode(codes), poly).astype(np.float32)
+    todo = [t for t in tasks if not _complete(store, t)]
+    _pass2(todo, output, codes, weights, dtype, max_pixels, client, progress,
+           sum((t.stop - t.start) * t.source.height * t.source.width for t in todo) / 1e6)
+    timings["pass2"] = time.perf_counter() - start
+    store.attrs["meta"] = json.dumps({**json.loads(store.attrs["meta"]), "timings": timings})
+    return collection
+
+
+def _pass1(tasks, max_pixels, client, progress, total_mp):
+    if client is None:
+        merged = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        with _bar("pass 1 (colours)", total_mp, progress) as bar:
+            for task in tasks:
+                merged = merge_counts(merged, count_task(task, max_pixels))
+                bar.update(_megapixels(task))
+        return merged
+    futures = client.map(count_task, tasks, max_pixels=max_pixels, pure=False)
+    while len(futures) > 1:  # tree reduction
+        pairs = [futures[i:i + 2] for i in range(0, len(futures), 2)]
+        futures = [client.submit(merge_counts, *pair, pure=False) if len(pair) == 2 else pair[0]
+                   for pair in pairs]
+    return futures[0].result()
+
+
+def _pass2(tasks, output, codes, weights, dtype, max_pixels, client, progress, total_mp):
+    if client is None:
+        with _bar("pass 2 (weights)", total_mp, progress) as bar:
+            for task in tasks:
+                write_task(task, output, codes, weights, dtype, max_pixels)
+                bar.update(_megapixels(task))
+        return
+    shared_codes, shared_weights = client.scatter([codes, weights], broadcast=True)
+    futures = client.map(write_task, tasks, output=output, codes=shared_codes,
+                         weights=shared_weights, dtype=dtype, max_pixels=max_pixels, pure=False)
+    client.gather(futures)
+
+
+def write_task(task: Task, output: str, codes: np.ndarray, weights: np.ndarray, dtype: str,
+               max_pixels: int = DEFAULT_MAX_PIXELS) -> int:
+    """Pass 2 of one task: each frame's weights into its chunk, then mark it complete."""
+    import zarr
+
+    store = zarr.open_group(output, mode="r+")
+    array = store[_array_name(task.source, store)]
+    complete = store["complete"]
+    for offset, (pixels, _) in enumerate(read_frames(task.source, task.start, task.stop,
+                                                    max_pixels)):
+        frame_codes = _codes(pixels)
+        index = np.minimum(np.searchsorted(codes, frame_codes), len(codes) - 1)
+        if not np.array_equal(codes[index], frame_codes):
+            raise InputError(f"{task.source.path} changed between the two passes")
+        frame = weights[index].reshape(*pixels.shape[:2], -1).astype(dtype)
+        if task.source.video:
+            array[task.start + offset] = frame
+        else:
+            array[...] = frame
+        complete[task.first + offset] = True
+    return task.stop - task.start
+
+
+def _megapixels(task: Task) -> float:
+    return (task.stop - task.start) * task.source.height * task.source.width / 1e6
+
+
+def _bar(label: str, total_mp: float, progress: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=round(total_mp, 2), desc=label, unit="MP", disable=not progress)
+
+
+def _store_exists(output: str) -> bool:
+    import zarr
+
+    try:
+        zarr.open_group(output, mode="r")
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError, ValueError, OSError):
+        return False
+    return True
+
+
+def _array_name(source: Source, store) -> str:
+    return store.attrs["arrays"][source.name]
+
+
+def _open_store(output, collection: Collection, k, max_error, palette_method, dtype, resume):
+    """The Zarr group of the stack: created (replacing one), or reopened to resume."""
+    import zarr
+
+    from . import __version__
+
+    palette = collection.palette.vertices.astype(np.float32)
+    if resume:
+        store = zarr.open_group(output, mode="r+")
+        if (store.attrs.get("names") != collection.names
+                or not np.array_equal(np.asarray(store.attrs["palette"], np.float32), palette)):
+            raise InputError(f"--resume: {output} holds another collection or palette; start "
+                             "afresh with --force")
+        return store
+    store = zarr.open_group(output, mode="w")
+    m = n_terms(len(palette), Basis.ADDITIVE)
+    arrays = {}
+    for i, source in enumerate(collection.sources):
+        name = f"weights_{i:04d}"
+        shape = (source.height, source.width, m)
+        if source.video:
+            store.create_array(name, shape=(source.frames, *shape), chunks=(1, *shape),
+                               dtype=dtype)
+        else:
+            store.create_array(name, shape=shape, chunks=shape, dtype=dtype)
+        arrays[source.name] = name
+    store.create_array("complete", shape=(len(collection.names),), chunks=(1,), dtype="bool",
+                       fill_value=False)
+    videos = {s.name: s.fps for s in collection.sources if s.video}
+    meta = {"version": __version__, "k": k, "max_error": max_error,
+            "palette_method": palette_method, "dtype": dtype, "videos": videos,
+            "n_pixels": int(collection.counts.sum()), "n_colours": len(collection.codes)}
+    store.attrs.update({"format": FORMAT, "palette": palette.tolist(), "basis": "additive",
+                        "order": 1, "names": collection.names, "method": "mvc",
+                        "arrays": arrays, "meta": json.dumps(meta)})
+    return store
+
+
+def _complete(store, task: Task) -> bool:
+    return bool(store["complete"][task.first:task.first + task.stop - task.start].all())
+
+
+def write_zarr_stack(stack: WeightStack, path: str | os.PathLike, force: bool = False) -> None:
+    """Write any stack as a Zarr store, one frame at a time (frames ``NAME#i`` of a video
+    into one array), built beside ``path`` and published whole (``outputs.publish_folder``).
+    """
+    import zarr
+
+    from .outputs import publish_folder
+
+    groups: dict[str, list[int]] = {}
+    for i, name in enumerate(stack.names):
+        groups.setdefault(name.split("#")[0] if "#" in name else name, []).append(i)
+    with publish_folder(path, force) as staging:
+        store = zarr.open_group(str(staging), mode="w")
+        arrays = {}
+        for n, (source, indices) in enumerate(groups.items()):
+            first = stack.weights[indices[0]]
+            array = f"weights_{n:04d}"
+            video = "#" in stack.names[indices[0]]
+            shape = (len(indices), *first.shape) if video else first.shape
+            data = store.create_array(array, shape=shape, chunks=(1, *first.shape) if video
+                                      else first.shape, dtype=first.dtype)
+            for j, i in enumerate(indices):
+                if video:
+                    data[j] = stack.weights[i]
+                else:
+                    data[...] = stack.weights[i]
+            arrays[source] = array
+        store.create_array("complete", shape=(len(stack.names),), chunks=(1,), dtype="bool",
+                           fill_value=True)
+        store.attrs.update({"format": FORMAT, "palette": np.asarray(stack.palette).tolist(),
+                            "basis": str(stack.basis), "order": stack.order,
+                            "names": list(stack.names), "method": stack.method,
+                            "arrays": arrays, "meta": json.dumps(stack.meta)})
+
+
+class LazyWeights(Sequence):
+    """The per-frame weights of a Zarr stack, read one frame at a time."""
+
+    def __init__(self, store, sources: list[tuple[str, int | None]], path: str):
+        self.store, self.sources, self.path = store, sources, path
+
+    def __len__(self) -> int:
+        return len(self.sources)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        array, frame = self.sources[i]
+        data = self.store[array]
+        weights = data[frame] if frame is not None else data[...]
+        if not np.isfinite(weights).all():
+            raise InputError(f"{self.path}: weights of frame {i} hold NaN or infinity")
+        return weights
+
+
+def read_zarr_stack(path: str) -> WeightStack:
+    """Read and validate a Zarr weight stack; its weights are read lazily, frame by frame.
+
+    Raises
+    ------
+    InputError
+        If the store is missing, not a ``palette-weights/1`` stack, incomplete, or
+        malformed (the message names the key).
+    """
+    import zarr
+
+    try:
+        store = zarr.open_group(path, mode="r")
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError, ValueError, OSError) as exc:
+        raise InputError(f"{path} is not a readable Zarr weight stack: {exc}") from None
+    attrs = dict(store.attrs)
+    if attrs.get("format") != FORMAT:
+        raise InputError(f"{path}: format is {attrs.get('format')!r}, expected {FORMAT!r}")
+    try:
+        palette = np.asarray(attrs["palette"], np.float32)
+        names = list(attrs["names"])
+        arrays = dict(attrs["arrays"])
+        meta = json.loads(attrs["meta"])
+        basis = Basis.parse(attrs["basis"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{path}: malformed attributes: {exc}") from None
+    if (palette.ndim != 2 or palette.shape[1:] != (3,)
+            or not np.all((palette >= 0) & (palette <= 1))):
+        raise InputError(f"{path}: palette must have shape (K, 3) with values in [0, 1]")
+    check_names(names, path)
+    if not store["complete"][...].all():
+        raise InputError(f"{path} is incomplete: finish it with palette-decompose ... --resume")
+    frames = []
+    for source, array in arrays.items():
+        data = store[array]
+        if data.ndim == 4:
+            frames += [(array, i) for i in range(data.shape[0])]
+        else:
+            frames.append((array, None))
+        if data.shape[-1] != n_terms(len(palette), basis) or data.dtype not in (np.float32,
+                                                                               np.float16):
+            raise InputError(f"{path}: weights of {source} must be float32/float16 with "
+                             f"{len(palette)} channels, got {data.dtype} {data.shape}")
+    if len(frames) != len(names):
+        raise InputError(f"{path}: {len(names)} names but {len(frames)} weight frames")
+    return WeightStack(palette, LazyWeights(store, frames, path), names, attrs.get("method", "mvc"),
+                       basis, 1, meta=meta)
+

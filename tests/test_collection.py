@@ -1,0 +1,108 @@
+"""Collections: streaming two-pass decomposition into Zarr stacks, videos in and out, resume,
+and the same result on a local dask cluster."""
+
+import json
+
+import numpy as np
+import pytest
+
+av = pytest.importorskip("av")
+zarr = pytest.importorskip("zarr")
+
+import palette_core.collection as collection  # noqa: E402
+from palette_core import decompose, read_stack  # noqa: E402
+from palette_core.cli import decompose as decompose_cli  # noqa: E402
+from palette_core.cli import recolor  # noqa: E402
+from palette_core.collection import decompose_collection  # noqa: E402
+
+from .helpers import expect_error, weight_invariants  # noqa: E402
+
+
+def make_video(path, rng, frames=6, size=(48, 64), fps=12):
+    """A short H.264 clip of drifting colour blobs, generated here (never committed)."""
+    yy, xx = np.mgrid[0:size[0], 0:size[1]]
+    with av.open(str(path), mode="w") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.height, stream.width, stream.pix_fmt = *size, "yuv420p"
+        for i in range(frames):
+            image = np.stack([(xx * 4 + i * 10) % 256, (yy * 5) % 256,
+                              (xx + yy + 40 * i) % 256], -1)
+            frame = av.VideoFrame.from_ndarray(image.astype(np.uint8), format="rgb24")
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode())
+    return path
+
+
+def test_streaming_matches_the_in_memory_decomposition(photo_dir, tmp_path):
+    store = str(tmp_path / "w.zarr")
+    done = decompose_collection([photo_dir], store, k=5, progress=False)
+    in_memory = decompose([photo_dir], k=5).stack
+    streamed = read_stack(store)
+    assert np.array_equal(streamed.palette, in_memory.palette)
+    assert streamed.names == in_memory.names == done.names
+    for a, b in zip(streamed.weights, in_memory.weights):
+        assert np.allclose(a, b, atol=1e-6)
+        weight_invariants(a.reshape(-1, a.shape[-1]), streamed.palette, None)
+
+
+def test_a_video_in_and_out(tmp_path, rng, capsys):
+    clip = make_video(tmp_path / "clip.mp4", rng)
+    store = tmp_path / "w.zarr"
+    assert decompose_cli.main([str(clip), "-k", "4", "-o", str(store)]) == 0
+    stack = read_stack(store)
+    assert stack.names == [f"clip.mp4#{i:06d}" for i in range(6)]
+    assert stack.meta["videos"] == {"clip.mp4": 12.0}
+    palette = tmp_path / "p.json"
+    palette.write_text(json.dumps({"palette": ["#ff0000", "#00ff00", "#0000ff", "#ffffff"]}))
+    assert recolor.main([str(store), "--palette", str(palette), "-o", str(tmp_path / "out")]) == 0
+    with av.open(str(tmp_path / "out" / "clip.mp4")) as container:
+        stream = container.streams.video[0]
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+        assert float(stream.average_rate) == 12.0
+    assert len(frames) == 6 and frames[0].shape == (48, 64, 3)
+    assert recolor.main([str(store), "--palette", str(palette), "-o", str(tmp_path / "png"),
+                         "--frames"]) == 0
+    assert sorted(p.name for p in (tmp_path / "png").iterdir())[0] == "clip.mp4#000000.png"
+    capsys.readouterr()
+    expect_error(decompose_cli.main, [str(clip), "-o", str(tmp_path / "w.npz")],
+                 "give -o NAME.zarr", capsys)
+
+
+def test_a_killed_second_pass_resumes(photo_dir, tmp_path, monkeypatch, capsys):
+    store = str(tmp_path / "w.zarr")
+    calls = []
+    write = collection.write_task
+
+    def write_then_stop(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(collection, "write_task", write_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        decompose_collection([photo_dir], store, k=5, progress=False)
+    monkeypatch.setattr(collection, "write_task", write)
+    with pytest.raises(Exception, match="incomplete"):
+        read_stack(store)
+    capsys.readouterr()
+    expect_error(decompose_cli.main, [str(photo_dir), "-k", "5", "-o", store], "--resume",
+                 capsys)
+    assert decompose_cli.main([str(photo_dir), "-k", "5", "-o", store, "--resume"]) == 0
+    fresh = decompose_collection([photo_dir], str(tmp_path / "f.zarr"), k=5, progress=False)
+    resumed = read_stack(store)
+    assert np.array_equal(resumed.palette, fresh.palette.vertices.astype(np.float32))
+    for a, b in zip(resumed.weights, read_stack(tmp_path / "f.zarr").weights):
+        assert np.array_equal(a, b)
+
+
+def test_a_local_dask_cluster_gives_the_same_stack(photo_dir, tmp_path, rng):
+    make_video(photo_dir / "clip.mp4", rng, frames=4)
+    single = decompose_collection([photo_dir], str(tmp_path / "one.zarr"), k=5, progress=False)
+    assert decompose_cli.main([str(photo_dir), "-k", "5", "-o", str(tmp_path / "two.zarr"),
+                               "--workers", "2"]) == 0
+    one, two = read_stack(tmp_path / "one.zarr"), read_stack(tmp_path / "two.zarr")
+    assert np.array_equal(two.palette, single.palette.vertices.astype(np.float32))
+    assert one.names == two.names and len(one.names) == 7
+    for a, b in zip(one.weights, two.weights):
+        assert np.allclose(a, b, atol=1e-6)
