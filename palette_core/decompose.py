@@ -184,7 +184,7 @@ def decompose(
 
     start = time.perf_counter()
     produced = image_weights(colour_set, poly, method, **method_options)
-    weights = [_stored(w, dtype) for w in tqdm(produced, total=len(images), desc="weights",
+    weights = [stored_weights(w, dtype) for w in tqdm(produced, total=len(images), desc="weights",
                                                unit="img", disable=not progress)]
     timings["weights"] = time.perf_counter() - start
 
@@ -221,7 +221,7 @@ def decompose(
 FLOAT16_SUM_TOL = 2.5e-4
 
 
-def _stored(weights: np.ndarray, dtype: str) -> np.ndarray:
+def stored_weights(weights: np.ndarray, dtype: str) -> np.ndarray:
     """(H, W, K) weights in the storage type; float16 rounding residuals go to each pixel's
     largest weight, so that sums stay within ``FLOAT16_SUM_TOL`` of one."""
     if dtype != "float16":
