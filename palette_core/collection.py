@@ -33,9 +33,12 @@ from .decompose import stored_weights
 from .errors import InputError
 from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, load_image
 from .mvc import rgb_to_mvc_weights
+from .outputs import atomic_outputs, check_writable
+from .palette_file import write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .polytope import Polytope
 from .registry import validate_method
+from .render import palette_swatch
 from .stack import FORMAT, WeightStack, check_dtype, check_names
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
@@ -314,6 +317,8 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
     k = check_palette_size(k, max_error)
     validate_method(palette_method, PALETTE_METHODS, "palette method")
     check_dtype(dtype)
+    swatch, palette_json = palette_paths(output)
+    check_writable([swatch, palette_json], force or resume)
     exists = _store_exists(output)
     if exists and not (force or resume):
         raise InputError(f"output {output} already exists (use --force to replace it or "
@@ -342,7 +347,19 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
            sum((t.stop - t.start) * t.source.height * t.source.width for t in todo) / 1e6)
     timings["pass2"] = time.perf_counter() - start
     store.attrs["meta"] = json.dumps({**json.loads(store.attrs["meta"]), "timings": timings})
+    with atomic_outputs(force or resume) as stage:
+        palette_swatch(poly.vertices).save(stage(swatch), format="PNG")
+        with open(stage(palette_json), "w") as f:
+            write_palette_json(f, poly.vertices)
     return collection
+
+
+def palette_paths(output: str) -> tuple[Path, Path]:
+    """The palette swatch and JSON beside a store, named after it (``w.zarr``:
+    ``w.palette.png``, ``w.palette.json``)."""
+    stem = str(output).rstrip("/")
+    stem = stem[: -len(".zarr")] if stem.endswith(".zarr") else stem
+    return Path(stem + ".palette.png"), Path(stem + ".palette.json")
 
 
 def _pass1(tasks, max_pixels, client, progress, total_mp):

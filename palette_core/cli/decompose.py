@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import sys
 
-from ..collection import decompose_collection, is_video
+from ..collection import decompose_collection, is_video, palette_paths
 from ..decompose import decompose
 from ..errors import InputError
 from ..io import DEFAULT_MAX_PIXELS
@@ -105,7 +105,7 @@ def _run_collection(args) -> int:
     print(f"{len(done.names)} images and frames, {megapixels:.1f} Mpx, "
           f"{len(done.codes)} distinct colours")
     print("time: " + ", ".join(f"{stage} {t:.2f} s" for stage, t in done.timings.items()))
-    print(f"wrote {args.output}")
+    print("wrote " + ", ".join(map(str, [args.output, *palette_paths(args.output)])))
     return 0
 
 
