@@ -84,7 +84,7 @@ def make_video(path: Path, frames: int, rng) -> None:
 def run(inputs: list[str], store: Path, workers: int | None) -> dict:
     shutil.rmtree(store, ignore_errors=True)
     command = ["/usr/bin/time", "-f", "maxrss %M", sys.executable, "-m",
-               "palette_core.cli.decompose", *inputs, "-k", "6", "-o", str(store)]
+               "palette_core.cli.decompose", *inputs, "-k", "6", "-o", str(store), "--force"]
     if workers:
         command += ["--workers", str(workers)]
     done = subprocess.run(command, capture_output=True, text=True)
