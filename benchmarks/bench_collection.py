@@ -156,6 +156,7 @@ def plot(rows: list[dict], out: Path) -> None:
         ax.set_ylabel(label)
         ax.legend(fontsize=7)
     left.set_yscale("log")
+    right.set_ylim(0, 1.2 * max(r["rss_mb"] for r in rows))
     fig.suptitle("Streaming decomposition: time grows with the collection, memory does not")
     fig.tight_layout()
     fig.savefig(out / "collection_growth.png", dpi=120)
