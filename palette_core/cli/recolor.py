@@ -35,7 +35,7 @@ def _run(args) -> int:
     stack = read_stack(args.stack)
     palette = read_palette_json(args.palette, k=len(stack.palette))
     written = recolor_stack(stack, palette, args.output, args.force, args.frames)
-    print(f"wrote {len(written)} recoloured images and videos to {args.output}")
+    print(f"wrote {len(written)} recoloured files to {args.output}")
     return 0
 
 
