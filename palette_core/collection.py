@@ -19,6 +19,7 @@ Videos are anything PyAV reads (``VIDEO_SUFFIXES``); their frames are named
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import time
@@ -29,9 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from .basis import Basis, n_terms
+from .colour_set import pack_codes
 from .decompose import stored_weights
 from .errors import InputError
-from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, load_image
+from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, find_images, load_image
 from .mvc import rgb_to_mvc_weights
 from .outputs import atomic_outputs, check_writable
 from .palette_file import write_palette_json
@@ -91,23 +93,7 @@ def find_sources(inputs: list, max_pixels: int = DEFAULT_MAX_PIXELS) -> list[Sou
         For a missing path, an empty folder, an unreadable file, or a frame larger than
         ``max_pixels``.
     """
-    if not inputs:
-        raise InputError("no input given: name image or video files or folders")
-    suffixes = IMAGE_SUFFIXES + VIDEO_SUFFIXES
-    paths: list[Path] = []
-    for item in map(Path, inputs):
-        if item.is_dir():
-            found = sorted(p for p in item.rglob("*")
-                           if p.is_file() and p.suffix.lower() in suffixes)
-            if not found:
-                raise InputError(f"no images or videos found in folder {item}")
-            paths += found
-        elif item.is_file():
-            paths.append(item)
-        else:
-            raise InputError(f"input path does not exist: {item}")
-    paths = list(dict.fromkeys(Path(os.path.abspath(p)) for p in paths))
-    root = Path(os.path.commonpath([p.parent for p in paths]))
+    root, paths = find_images(inputs, IMAGE_SUFFIXES + VIDEO_SUFFIXES)
     return [_probe(p, p.relative_to(root).as_posix(), max_pixels) for p in paths]
 
 
@@ -156,14 +142,6 @@ def read_frames(source: Source, start: int = 0, stop: int | None = None,
                 yield pixels, np.ones(pixels.shape[:2], bool)
 
 
-def _codes(pixels: np.ndarray) -> np.ndarray:
-    """(H, W, 3) pixels -> (H W,) int64 codes at 16 bits per channel (8-bit values widened)."""
-    p = pixels.reshape(-1, 3).astype(np.int64)
-    if pixels.dtype == np.uint8:
-        p *= 257
-    return (p[:, 0] << 32) | (p[:, 1] << 16) | p[:, 2]
-
-
 def _decode(codes: np.ndarray) -> np.ndarray:
     """(D,) codes -> (D, 3) float64 colours in [0, 1]."""
     return np.stack([codes >> 32, (codes >> 16) & _MASK, codes & _MASK], axis=-1) / float(_MASK)
@@ -207,15 +185,14 @@ class ColourCounter:
     def add(self, pixels: np.ndarray, opaque: np.ndarray) -> None:
         opaque = opaque.ravel()
         if pixels.dtype == np.uint8:
-            p = pixels.reshape(-1, 3).astype(np.int32)
-            codes = (p[:, 0] << 16) | (p[:, 1] << 8) | p[:, 2]
+            codes = pack_codes(pixels, 8)
             if self.dense is None:
                 self.dense = np.zeros(1 << 24, np.int64)
                 self.seen = np.zeros(1 << 24, bool)
             self.dense += np.bincount(codes[opaque], minlength=1 << 24)
             self.seen[codes[~opaque]] = True
             return
-        codes = _codes(pixels)
+        codes = pack_codes(pixels, 16)
         seen, counts = np.unique(codes[opaque], return_counts=True)
         hidden = np.unique(codes[~opaque])
         self.sparse = merge_counts(self.sparse, merge_counts(
@@ -264,12 +241,11 @@ class ColourIndex:
 
     def __call__(self, pixels: np.ndarray, source: Source) -> np.ndarray:
         if pixels.dtype == np.uint8:
-            p = pixels.reshape(-1, 3).astype(np.int32)
-            index = self.table[(p[:, 0] << 16) | (p[:, 1] << 8) | p[:, 2]]
+            index = self.table[pack_codes(pixels, 8)]
             if (index < 0).any():
                 raise InputError(f"{source.path} changed between the two passes")
             return index
-        frame_codes = _codes(pixels)
+        frame_codes = pack_codes(pixels, 16)
         index = np.minimum(np.searchsorted(self.codes, frame_codes), len(self.codes) - 1)
         if not np.array_equal(self.codes[index], frame_codes):
             raise InputError(f"{source.path} changed between the two passes")
@@ -366,11 +342,10 @@ def _pass1(tasks, max_pixels, client, progress, total_mp):
     if client is None:
         counter = ColourCounter()
         with _bar("pass 1 (colours)", total_mp, progress) as bar:
-            for task in tasks:
-                for pixels, opaque in read_frames(task.source, task.start, task.stop,
-                                                  max_pixels):
+            for task, frames in _frames_in_order(tasks, max_pixels):
+                for pixels, opaque in frames:
                     counter.add(pixels, opaque)
-                    bar.update(pixels.shape[0] * pixels.shape[1] / 1e6)
+                bar.update(_megapixels(task))
         return counter.result()
     futures = client.map(count_task, tasks, max_pixels=max_pixels, pure=False)
     while len(futures) > 1:  # tree reduction
@@ -384,8 +359,8 @@ def _pass2(tasks, output, codes, weights, dtype, max_pixels, client, progress, t
     if client is None:
         index = ColourIndex(codes)
         with _bar("pass 2 (weights)", total_mp, progress) as bar:
-            for task in tasks:
-                write_task(task, output, index, weights, dtype, max_pixels)
+            for task, frames in _frames_in_order(tasks, max_pixels):
+                write_task(task, output, index, weights, dtype, max_pixels, frames)
                 bar.update(_megapixels(task))
         return
     shared_codes, shared_weights = client.scatter([codes, weights], broadcast=True)
@@ -395,11 +370,12 @@ def _pass2(tasks, output, codes, weights, dtype, max_pixels, client, progress, t
 
 
 def write_task(task: Task, output: str, index, weights: np.ndarray, dtype: str,
-               max_pixels: int = DEFAULT_MAX_PIXELS) -> int:
+               max_pixels: int = DEFAULT_MAX_PIXELS, frames=None) -> int:
     """Pass 2 of one task: each frame's weights into its chunk, then mark it complete.
 
     ``index`` is a ``ColourIndex``, or the sorted distinct codes to build one from (on a
-    dask worker, where each task builds its own).
+    dask worker, where each task builds its own); ``frames`` the task's frames when the
+    caller is already reading them (``_frames_in_order``).
     """
     import zarr
 
@@ -408,8 +384,9 @@ def write_task(task: Task, output: str, index, weights: np.ndarray, dtype: str,
     store = zarr.open_group(output, mode="r+")
     array = store[_array_name(task.source, store)]
     complete = store["complete"]
-    for offset, (pixels, _) in enumerate(read_frames(task.source, task.start, task.stop,
-                                                    max_pixels)):
+    if frames is None:
+        frames = read_frames(task.source, task.start, task.stop, max_pixels)
+    for offset, (pixels, _) in enumerate(frames):
         frame = stored_weights(weights[index(pixels, task.source)], dtype)
         frame = frame.reshape(*pixels.shape[:2], -1)
         if task.source.video:
@@ -418,6 +395,17 @@ def write_task(task: Task, output: str, index, weights: np.ndarray, dtype: str,
             array[...] = frame
         complete[task.first + offset] = True
     return task.stop - task.start
+
+
+def _frames_in_order(tasks: list[Task], max_pixels: int):
+    """(task, its frames) for tasks in order; a video whose tasks follow each other is
+    decoded once, not again from its first frame for every task."""
+    source = position = frames = None
+    for task in tasks:
+        if task.source != source or task.start != position:
+            frames = read_frames(task.source, task.start, None, max_pixels)
+        source, position = task.source, task.stop
+        yield task, itertools.islice(frames, task.stop - task.start)
 
 
 def _megapixels(task: Task) -> float:

@@ -38,7 +38,7 @@ class ColourSet:
     def from_images(cls, images: list[LoadedImage]) -> ColourSet:
         sixteen = any(im.pixels.dtype == np.uint16 for im in images)
         bits = 16 if sixteen else 8
-        codes = np.concatenate([_pack(im.pixels, bits) for im in images])
+        codes = np.concatenate([pack_codes(im.pixels, bits) for im in images])
         opaque = np.concatenate([im.opaque.ravel() for im in images])
         offsets = np.cumsum([0] + [im.opaque.size for im in images])
         unique, inverse = _unique_codes(codes, bits)
@@ -52,8 +52,9 @@ class ColourSet:
         return self.inverse[self.offsets[i] : self.offsets[i + 1]]
 
 
-def _pack(pixels: np.ndarray, bits: int) -> np.ndarray:
-    """(H, W, 3) integer pixels -> (H*W,) int64 codes; 8-bit values are widened to 16."""
+def pack_codes(pixels: np.ndarray, bits: int) -> np.ndarray:
+    """(H, W, 3) integer pixels -> (H*W,) int64 codes of ``bits`` per channel; 8-bit values
+    are widened to 16 when ``bits`` is 16."""
     p = pixels.reshape(-1, 3).astype(np.int64)
     if bits == 16 and pixels.dtype == np.uint8:
         p *= 257

@@ -62,8 +62,10 @@ class LoadedImage:
         return self.pixels / float(np.iinfo(self.pixels.dtype).max)
 
 
-def find_images(inputs: list[str | os.PathLike]) -> tuple[Path, list[Path]]:
-    """Expand files and folders (recursively, sorted) into image paths.
+def find_images(inputs: list[str | os.PathLike],
+                suffixes: tuple[str, ...] = IMAGE_SUFFIXES) -> tuple[Path, list[Path]]:
+    """Expand files and folders (recursively, sorted) into the paths of files with
+    ``suffixes`` (images by default).
 
     Returns the input root (the deepest folder holding every input) and the paths.
 
@@ -78,10 +80,10 @@ def find_images(inputs: list[str | os.PathLike]) -> tuple[Path, list[Path]]:
     for item in map(Path, inputs):
         if item.is_dir():
             found = sorted(
-                p for p in item.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+                p for p in item.rglob("*") if p.is_file() and p.suffix.lower() in suffixes
             )
             if not found:
-                raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) found in folder {item}")
+                raise InputError(f"no images ({', '.join(suffixes)}) found in folder {item}")
             paths.extend(found)
         elif item.is_file():
             paths.append(item)

@@ -128,9 +128,9 @@ def add_config_arguments(parser: argparse.ArgumentParser, defaults, prefix: str 
 
 def config_from_args(cls: type, args: argparse.Namespace, prefix: str = ""):
     """The dataclass ``cls`` built from the flags of ``add_config_arguments``."""
-    values = {}
+    values, hints = {}, typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        kind = typing.get_type_hints(cls)[f.name]
+        kind = hints[f.name]
         values[f.name] = (config_from_args(kind, args, prefix + f.name + "_")
                           if dataclasses.is_dataclass(kind) else getattr(args, prefix + f.name))
     return cls(**values)
