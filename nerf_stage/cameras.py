@@ -157,3 +157,17 @@ def orbit_poses(poses: np.ndarray, n: int, centre) -> np.ndarray:
                                                    + np.sin(sweep)[:, None] * e2)
                               + np.sin(elevation) * up)
     return np.array([look_at(eye, centre, up) for eye in eyes]).reshape(n, 4, 4)
+
+
+def turntable_poses(pose: np.ndarray, centre, n: int) -> np.ndarray:
+    """(n, 4, 4) ``pose`` turned about the vertical (world +y) axis through ``centre`` in n
+    even steps, starting from ``pose`` itself."""
+    centre = np.asarray(centre, np.float64)
+    poses = []
+    for angle in 2 * np.pi * np.arange(n) / n:
+        c, s = np.cos(angle), np.sin(angle)
+        turn = np.eye(4)
+        turn[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+        turn[:3, 3] = centre - turn[:3, :3] @ centre
+        poses.append(turn @ pose)
+    return np.array(poses).reshape(n, 4, 4)

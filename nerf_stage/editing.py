@@ -18,13 +18,13 @@ import numpy as np
 from PIL import Image
 
 from palette_core.basis import Basis, n_terms, weights_to_rgb
-from palette_core.errors import InputError
+from palette_core.errors import InputError, OutputExists
 from palette_core.outputs import atomic_outputs, inside, publish_folder, save_image
 from palette_core.palette_file import read_palette_json
 from palette_core.render import palette_swatch
 from palette_core.stack import NpzReader, WeightStack, check_names
 
-from .cameras import orbit_poses
+from .cameras import Intrinsics, orbit_poses
 from .fields import RGB
 from .run import Run, load_run
 
@@ -92,11 +92,12 @@ def render_poses(run: Run, dataset, split: str | None, orbit: int | None):
 
 
 def render_weights(run: Run, names: list[str], poses: np.ndarray, source: dict,
-                   progress: bool = True) -> WeightRender:
-    """Render the run's weights for ``poses`` (runs the network)."""
+                   progress: bool = True, intrinsics: Intrinsics | None = None) -> WeightRender:
+    """Render the run's weights for ``poses`` (runs the network), with the training
+    camera's ``intrinsics`` unless given."""
     if run.field.kind == RGB:
         raise InputError("this run was trained on RGB only (strategy 'rgb'): it has no weights")
-    weights, opacity = run.render(poses, progress=progress)
+    weights, opacity = run.render(poses, progress, intrinsics)
     return WeightRender(weights, opacity, names, run.palette, run.basis, run.order,
                         np.asarray(run.config.background, np.float64), source)
 
@@ -204,7 +205,7 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
                                                    if orbit is not None]
     existing = [str(path) for path in outputs if path.exists()]
     if existing and not force:
-        raise InputError(f"output {existing[0]} already exists (use --force to overwrite)")
+        raise OutputExists(f"output {existing[0]} already exists (use --force to overwrite)")
     reused = render is not None and render.source == source
     if not reused:
         dataset = load_dataset(run.record.dataset, run.config.background)

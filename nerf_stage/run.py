@@ -106,8 +106,9 @@ class Run:
                            generator)
 
     @torch.no_grad()
-    def render(self, poses: np.ndarray, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Render whole views.
+    def render(self, poses: np.ndarray, progress: bool = False,
+               intrinsics: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Render whole views, with the training camera's ``intrinsics`` unless given.
 
         Returns
         -------
@@ -117,12 +118,13 @@ class Run:
         """
         self.field.eval()
         device = self.occupancy.extent.device
+        intrinsics = intrinsics or self.intrinsics
         values, accs = [], []
         for pose in tqdm(poses, desc="render", unit="view", disable=not progress):
-            origins, directions = normalised_rays(pose, self.intrinsics, self.box, device)
+            origins, directions = normalised_rays(pose, intrinsics, self.box, device)
             outputs = [self.render_rays(o, d) for o, d in zip(origins.split(RENDER_CHUNK),
                                                               directions.split(RENDER_CHUNK))]
-            shape = (self.intrinsics.height, self.intrinsics.width)
+            shape = (intrinsics.height, intrinsics.width)
             values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).cpu().numpy())
             accs.append(torch.cat([a for _, a in outputs]).reshape(shape).cpu().numpy())
         return np.stack(values), np.stack(accs)

@@ -32,7 +32,7 @@ import numpy as np
 from .basis import Basis, n_terms
 from .colour_set import pack_codes
 from .decompose import stored_weights
-from .errors import InputError
+from .errors import InputError, OutputExists
 from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, find_images, load_image
 from .mvc import rgb_to_mvc_weights
 from .outputs import atomic_outputs, check_writable
@@ -297,7 +297,7 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
     check_writable([swatch, palette_json], force or resume)
     exists = _store_exists(output)
     if exists and not (force or resume):
-        raise InputError(f"output {output} already exists (use --force to replace it or "
+        raise OutputExists(f"output {output} already exists (use --force to replace it or "
                          "--resume to finish it)")
     if resume and not exists:
         raise InputError(f"--resume: {output} does not exist")

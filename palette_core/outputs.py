@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .errors import InputError
+from .errors import InputError, OutputExists
 
 _STALE = re.compile(r"^\..*\.~(\d+)~[^/]*$")
 
@@ -123,7 +123,7 @@ def _publish_files(staged: dict[Path, Path], force: bool) -> None:
             try:
                 rename_no_replace(tmp, final)
             except FileExistsError:
-                raise InputError(f"output {final} appeared while writing; it was kept "
+                raise OutputExists(f"output {final} appeared while writing; it was kept "
                                  "(use --force to overwrite)") from None
             published.append(final)
     except BaseException:
@@ -166,7 +166,7 @@ def publish_folder(final: str | os.PathLike, force: bool = False) -> Iterator[Pa
         try:
             rename_no_replace(staging, final)
         except FileExistsError:
-            raise InputError(f"output folder {final} appeared while writing; it was kept "
+            raise OutputExists(f"output folder {final} appeared while writing; it was kept "
                              "(use --force to replace it)") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -228,7 +228,7 @@ def check_writable(paths: list[Path], force: bool) -> None:
     """
     for path in map(Path, paths):
         if path.exists() and not force:
-            raise InputError(f"output {path} already exists (use --force to overwrite)")
+            raise OutputExists(f"output {path} already exists (use --force to overwrite)")
         if path.is_dir():
             raise InputError(f"output {path} is a folder, expected a file path")
         _check_parent(path)
@@ -246,7 +246,7 @@ def check_outdir(outdir: str | os.PathLike, force: bool) -> None:
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"output {outdir} exists and is not a folder")
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
-        raise InputError(f"output folder {outdir} is not empty (use --force to replace it)")
+        raise OutputExists(f"output folder {outdir} is not empty (use --force to replace it)")
     _check_parent(outdir)
 
 

@@ -1,0 +1,91 @@
+"""Photo mode: the images of a weight stack (NPZ or Zarr), read on demand.
+
+Only the image on screen and its neighbours' thumbnails are read: a stack of a
+hundred photos opens as fast as one. Recolouring is ``weights @ basis(palette)``
+(``palette_core.basis.weights_to_rgb``) on weights kept at display size.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from harmonize import palette_shares
+from palette_core.basis import weights_to_rgb
+from palette_core.recolor import recolor_stack
+from palette_core.stack import WeightStack, read_stack
+
+DISPLAY_PIXELS = 1 << 20  # weights kept per view: about one megapixel
+THUMBNAIL_PIXELS = 96 * 72  # weights kept per thumbnail
+CACHED_VIEWS = 8
+
+
+def downsample(weights: np.ndarray, max_pixels: int) -> np.ndarray:
+    """(H, W, M) -> every s-th pixel, s the least step that leaves at most ``max_pixels``.
+
+    Strided rather than averaged: weights stay exact values of the stack (and sum to one).
+    """
+    step = int(np.ceil(np.sqrt(weights.shape[0] * weights.shape[1] / max_pixels)))
+    return weights[::max(step, 1), ::max(step, 1)]
+
+
+class PhotoTarget:
+    """A weight stack to recolour in the studio.
+
+    Parameters
+    ----------
+    stack : WeightStack
+    path : Path
+        Where it was read from (the default export folder sits beside it).
+    """
+
+    mode = "photos"
+
+    def __init__(self, stack: WeightStack, path: Path):
+        self.stack = stack
+        self.path = path
+        self._views: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> PhotoTarget:
+        return cls(read_stack(path), Path(path))
+
+    @property
+    def names(self) -> list[str]:
+        return self.stack.names
+
+    @property
+    def palette(self) -> np.ndarray:
+        return self.stack.palette
+
+    def shares(self) -> np.ndarray:
+        """(K,) each colour's share of all weights (reads the whole stack once)."""
+        return palette_shares(self.stack)
+
+    def weights(self, i: int, max_pixels: int = DISPLAY_PIXELS) -> np.ndarray:
+        """(h, w, M) float32 weights of image ``i`` at most ``max_pixels`` (cached)."""
+        key = (i, max_pixels)
+        if key not in self._views:
+            full = self.stack.weights[i]
+            self._views[key] = np.ascontiguousarray(downsample(full, max_pixels), np.float32)
+            if len(self._views) > CACHED_VIEWS:
+                self._views.popitem(last=False)
+        self._views.move_to_end(key)
+        return self._views[key]
+
+    def view(self, i: int, palette: np.ndarray, max_pixels: int = DISPLAY_PIXELS) -> np.ndarray:
+        """(h, w, 3) float64 image ``i`` recoloured with ``palette``, clipped to [0, 1]."""
+        rgb = weights_to_rgb(self.weights(i, max_pixels), palette, self.stack.basis,
+                             self.stack.order)
+        return np.clip(rgb, 0, 1)
+
+    def default_export(self) -> Path:
+        return self.path.with_name(f"{self.path.stem}_studio")
+
+    def export(self, folder: str | os.PathLike, palette: np.ndarray,
+               force: bool = False) -> list[Path]:
+        """Every image (and video) recoloured into ``folder`` (``recolor_stack``)."""
+        return recolor_stack(self.stack, palette, folder, force)

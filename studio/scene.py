@@ -1,0 +1,113 @@
+"""Scene mode: a trained weight NeRF rendered from the browser's camera.
+
+The network runs once per camera view and resolution; the weights are cached,
+and a palette change recolours them (``nerf_stage.editing.WeightRender``) without
+running it again.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from harmonize import palette_shares
+from nerf_stage.cameras import Intrinsics, look_at, turntable_poses
+from nerf_stage.editing import WeightRender, render_weights, write_gif
+from nerf_stage.fields import RGB
+from nerf_stage.run import Run, load_run
+from palette_core.errors import InputError
+from palette_core.outputs import atomic_outputs, check_writable
+
+CACHED_VIEWS = 32
+SHARE_VIEWS, SHARE_SIZE = 8, 32  # the low-resolution turntable that harmonisation weighs
+MAX_TURNTABLE = 360
+
+
+class SceneTarget:
+    """A ``nerf-stage train`` run folder to recolour in the studio.
+
+    Parameters
+    ----------
+    run : Run
+    path : Path
+        The run folder (default exports go into it).
+    """
+
+    mode = "scene"
+
+    def __init__(self, run: Run, path: Path):
+        self.run = run
+        self.path = path
+        self._views: OrderedDict[tuple, WeightRender] = OrderedDict()
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> SceneTarget:
+        run = load_run(path)
+        if run.field.kind == RGB:
+            raise InputError(f"{path} was trained on RGB only (strategy 'rgb'): it has no "
+                             "weights to recolour")
+        return cls(run, Path(path))
+
+    @property
+    def palette(self) -> np.ndarray:
+        return self.run.palette
+
+    @property
+    def fov_y(self) -> float:
+        """Vertical field of view of the training camera, radians."""
+        return 2 * math.atan(0.5 * self.run.intrinsics.height / self.run.intrinsics.fy)
+
+    def home_pose(self) -> np.ndarray:
+        """(4, 4) a camera in front of the scene (+z), 20 degrees up, seeing all of its box."""
+        box = self.run.box
+        distance = 1.1 * np.linalg.norm(box.half) / math.sin(0.5 * self.fov_y)
+        up = math.radians(20)
+        eye = box.centre + distance * np.array([0, math.sin(up), math.cos(up)])
+        return look_at(eye, box.centre)
+
+    def intrinsics(self, aspect: float, height: int) -> Intrinsics:
+        """A camera of the training camera's vertical field of view, ``height`` rows and
+        ``aspect`` (width / height)."""
+        width = max(1, round(height * aspect))
+        focal = 0.5 * height / math.tan(0.5 * self.fov_y)
+        return Intrinsics(width, height, focal, focal, width / 2, height / 2)
+
+    def render(self, pose: np.ndarray, intrinsics: Intrinsics) -> WeightRender:
+        """The weights of one view (cached by pose and camera)."""
+        key = (np.round(pose, 6).tobytes(), intrinsics.width, intrinsics.height)
+        if key not in self._views:
+            self._views[key] = render_weights(self.run, ["view"], pose[None], {}, False,
+                                              intrinsics)
+            if len(self._views) > CACHED_VIEWS:
+                self._views.popitem(last=False)
+        self._views.move_to_end(key)
+        return self._views[key]
+
+    def shares(self) -> np.ndarray:
+        """(K,) each colour's share of the weights of a low-resolution turntable."""
+        poses = turntable_poses(self.home_pose(), self.run.box.centre, SHARE_VIEWS)
+        render = render_weights(self.run, [f"turn_{i}" for i in range(SHARE_VIEWS)], poses, {},
+                                False, self.intrinsics(1.0, SHARE_SIZE))
+        return palette_shares(render.as_stack())
+
+    def default_export(self) -> Path:
+        return self.path / "turntable.gif"
+
+    def export(self, path: str | os.PathLike, palette: np.ndarray, pose: np.ndarray,
+               intrinsics: Intrinsics, views: int = 36, force: bool = False) -> list[Path]:
+        """A turntable GIF of ``views`` frames from ``pose``, recoloured with ``palette``."""
+        path = Path(path)
+        if path.suffix.lower() != ".gif":
+            raise InputError(f"a turntable is written as .gif, got {path}")
+        if not 1 <= views <= MAX_TURNTABLE:
+            raise InputError(f"a turntable has 1 to {MAX_TURNTABLE} views, got {views}")
+        check_writable([path], force)
+        poses = turntable_poses(pose, self.run.box.centre, views)
+        frames = np.concatenate([self.render(p, intrinsics).recolor(palette) for p in poses])
+        with atomic_outputs(force) as stage:
+            write_gif(stage(path), frames)
+        return [path]

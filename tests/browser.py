@@ -1,0 +1,76 @@
+"""Driving palette-studio in headless Chromium (Debian's ``chromium`` and ``chromium-driver``;
+nothing is downloaded): open the page, type a colour into a picker, read viewport pixels."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+MISSING = ("no browser: install Debian's chromium and chromium-driver "
+           "(apt-get install chromium chromium-driver) to run the browser tests")
+
+#: The viewport's WebGL canvas (viser keeps its drawing buffer), copied to read pixels.
+_READ_PIXEL = """
+const canvas = [...document.querySelectorAll('canvas')]
+    .sort((a, b) => b.width * b.height - a.width * a.height)[0];
+if (!canvas || canvas.width === 0) return null;
+const copy = document.createElement('canvas');
+copy.width = canvas.width; copy.height = canvas.height;
+const context = copy.getContext('2d');
+context.drawImage(canvas, 0, 0);
+const x = Math.floor(arguments[0] * canvas.width), y = Math.floor(arguments[1] * canvas.height);
+return Array.from(context.getImageData(x, y, 1, 1).data.slice(0, 3));
+"""
+
+
+def chromium(width: int = 1000, height: int = 700):
+    """A headless Chromium under selenium, WebGL by SwiftShader (no GPU needed)."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
+                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                 f"--window-size={width},{height}"):
+        options.add_argument(flag)
+    return webdriver.Chrome(options=options, service=Service(CHROMEDRIVER))
+
+
+def pixel(driver, x: float = 0.5, y: float = 0.5) -> list[int] | None:
+    """RGB (0..255) of the viewport at fractions ``x``, ``y`` of its width and height."""
+    return driver.execute_script(_READ_PIXEL, x, y)
+
+
+def wait_for(condition, timeout: float = 30.0, every: float = 0.05):
+    """Poll ``condition()`` until it returns something truthy; that value, or None."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = condition()
+        if value:
+            return value
+        time.sleep(every)
+    return None
+
+
+def colour_input(driver, label: str):
+    """The text input of the colour picker labelled ``label``."""
+    from selenium.webdriver.common.by import By
+
+    return driver.find_element(
+        By.XPATH, f"//*[normalize-space(text())='{label}']/following::input[1]")
+
+
+def type_colour(driver, label: str, hex_code: str) -> None:
+    """Type ``#rrggbb`` into the picker labelled ``label`` and press Enter, as a person would."""
+    from selenium.webdriver.common.keys import Keys
+
+    field = colour_input(driver, label)
+    field.click()
+    field.send_keys(Keys.CONTROL, "a")
+    field.send_keys(hex_code, Keys.ENTER)
+
+
+def close_to(a, b, tolerance: int) -> bool:
+    return a is not None and max(abs(int(u) - int(v)) for u, v in zip(a, b)) <= tolerance

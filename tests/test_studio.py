@@ -1,0 +1,192 @@
+"""palette-studio without a browser: the editing state, both targets, exports, bad input."""
+
+import socket
+
+import numpy as np
+import pytest
+
+pytest.importorskip("viser")
+
+from harmonize import harmonize_palette, palette_shares  # noqa: E402
+from palette_core.basis import weights_to_rgb  # noqa: E402
+from palette_core.cli.recolor import main as recolor  # noqa: E402
+from palette_core.errors import InputError, OutputExists  # noqa: E402
+from palette_core.palette_file import read_palette_json, write_palette_json  # noqa: E402
+from palette_core.stack import WeightStack, write_stack  # noqa: E402
+from studio import PaletteEditor  # noqa: E402
+from studio.app import Studio, letterbox, to_bytes  # noqa: E402
+from studio.cli import main as studio_main  # noqa: E402
+from studio.photos import PhotoTarget, downsample  # noqa: E402
+
+from .helpers import expect_error  # noqa: E402
+
+PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.95, 0.9, 0.2]])
+
+
+def tiny_stack(path, rng, n=3):
+    weights = [rng.dirichlet(np.ones(4), size=(6 + i, 8)).astype(np.float32) for i in range(n)]
+    write_stack(WeightStack(PALETTE, weights, [f"p{i}.png" for i in range(n)], "mvc"), path)
+    return path
+
+
+def test_editor_edits_undo_reset():
+    editor = PaletteEditor(PALETTE, lambda: np.full(4, 0.25))
+    assert not editor.can_undo and not editor.undo()
+    assert editor.set_colour(1, [0, 0, 0]) and not editor.set_colour(1, [0, 0, 0])
+    editor.set_colour(2, [1, 1, 1])
+    assert editor.palette[1].tolist() == [0, 0, 0] and editor.palette[2].tolist() == [1, 1, 1]
+    assert editor.undo() and editor.palette[2].tolist() == PALETTE[2].tolist()
+    assert editor.reset() and np.array_equal(editor.palette, PALETTE)
+    assert editor.undo() and editor.palette[1].tolist() == [0, 0, 0]  # reset is undoable
+    with pytest.raises(InputError):
+        editor.set_colour(4, [0, 0, 0])
+
+
+def test_editor_harmonises_like_the_library(tmp_path, rng):
+    stack_path = tiny_stack(tmp_path / "w.npz", rng)
+    target = PhotoTarget.open(stack_path)
+    editor = PaletteEditor(target.palette, target.shares)
+    name = editor.harmonize("best", 0.5)
+    expected = harmonize_palette(PALETTE, palette_shares(target.stack), "best", 0.5)
+    assert name == expected.fit.template.name
+    assert np.allclose(editor.palette, expected.palette)
+    with pytest.raises(InputError):
+        editor.harmonize("no-such-template")
+
+
+def test_editor_saves_the_cli_format_and_asks_before_replacing(tmp_path):
+    editor = PaletteEditor(PALETTE, lambda: np.full(4, 0.25))
+    editor.set_colour(0, [0, 0, 1])
+    path = tmp_path / "edit.json"
+    editor.save(path)
+    assert np.allclose(read_palette_json(path, k=4), np.round(editor.palette * 255) / 255)
+    editor.set_colour(0, [1, 1, 1])
+    with pytest.raises(OutputExists):
+        editor.save(path)
+    assert read_palette_json(path)[0].tolist() == [0, 0, 1]  # kept
+    editor.save(path, force=True)
+    assert read_palette_json(path)[0].tolist() == [1, 1, 1]
+    with pytest.raises(InputError, match=".json"):
+        editor.save(tmp_path / "edit.txt")
+
+
+def test_photo_views_recolour_the_stack(tmp_path, rng):
+    target = PhotoTarget.open(tiny_stack(tmp_path / "w.npz", rng))
+    edited = PALETTE[::-1]
+    view = target.view(1, edited)
+    assert np.allclose(view, np.clip(weights_to_rgb(target.stack.weights[1], edited), 0, 1))
+    small = target.view(1, edited, max_pixels=12)
+    assert small.shape[0] * small.shape[1] <= 12
+    weights = downsample(target.stack.weights[1], 12)
+    assert np.allclose(weights.sum(-1), 1)  # strided: exact weights, still summing to one
+
+
+def test_photo_export_matches_palette_recolor(tmp_path, rng):
+    stack_path = tiny_stack(tmp_path / "w.npz", rng)
+    edited = np.clip(PALETTE + 0.05, 0, 1)
+    write_palette_json(tmp_path / "edit.json", edited)
+    assert recolor([str(stack_path), "--palette", str(tmp_path / "edit.json"), "-o",
+                    str(tmp_path / "cli")]) == 0
+    target = PhotoTarget.open(stack_path)
+    written = target.export(tmp_path / "studio", read_palette_json(tmp_path / "edit.json"))
+    assert len(written) == 3
+    for path in written:
+        assert path.read_bytes() == (tmp_path / "cli" / path.name).read_bytes()
+    with pytest.raises(OutputExists):
+        target.export(tmp_path / "studio", edited)
+
+
+def test_letterbox_centres_the_image():
+    image = np.ones((10, 20, 3))
+    boxed = letterbox(image, 1.0)
+    assert boxed.shape == (20, 20, 3) and boxed[10, 10].tolist() == [1, 1, 1]
+    assert letterbox(image, 4.0).shape == (10, 40, 3)
+
+
+def test_studio_edits_and_serves(tmp_path, rng):
+    studio = Studio(PhotoTarget.open(tiny_stack(tmp_path / "w.npz", rng)), port=0)
+    try:
+        assert studio.url.startswith("http://127.0.0.1:")
+        studio._apply(lambda: studio.editor.set_colour(0, [0, 0, 0]))
+        assert studio.pickers[0].value == (0, 0, 0)
+        studio._apply(studio.editor.undo)
+        assert studio.pickers[0].value == tuple(to_bytes(studio.editor.original[0]).tolist())
+        studio._show_image(2)
+        assert studio.chooser.value == "p2.png"
+    finally:
+        studio.stop()
+
+
+def test_cli_bad_input(tmp_path, rng, capsys):
+    expect_error(studio_main, [str(tmp_path / "missing.npz"), "--no-browser"], "does not exist",
+                 capsys)
+    (tmp_path / "notes.txt").write_text("hello")
+    expect_error(studio_main, [str(tmp_path / "notes.txt"), "--no-browser"],
+                 "neither a weight stack", capsys)
+    expect_error(studio_main, [str(tmp_path), "--no-browser"], "neither a weight stack", capsys)
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    expect_error(studio_main, [str(tmp_path / "bad.npz"), "--no-browser"], "bad.npz", capsys)
+    stack = tiny_stack(tmp_path / "w.npz", rng)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        expect_error(studio_main, [str(stack), "--no-browser", "--port", str(port)],
+                     f"cannot listen on 127.0.0.1:{port}", capsys)
+    expect_error(studio_main, [str(stack), "--no-browser", "--port", "70000"], "--port", capsys)
+
+
+# --- scene mode ------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def scene_run(tmp_path_factory):
+    """A tiny weight NeRF of a 16x16 still life."""
+    pytest.importorskip("torch")
+    from nerf_stage.cli import main as nerf
+    from palette_core.cli.decompose import main as decompose
+
+    root = tmp_path_factory.mktemp("studio")
+    scene = root / "sl"
+    assert nerf(["simulate", "still-life", str(scene), "--resolution", "16", "--spp", "2",
+                 "--views", "4", "1", "1"]) == 0
+    assert decompose([str(scene / "train"), "-k", "4", "-o", str(scene / "weights.npz")]) == 0
+    assert nerf(["train", str(scene), "-o", str(root / "run"), "--pretrain-iters", "2",
+                 "--finetune-iters", "2", "--batch-rays", "64", "--grid-voxels", str(12**3),
+                 "--head-width", "16"]) == 0
+    return root / "run"
+
+
+def test_scene_views_are_cached_and_recoloured_without_the_network(scene_run, monkeypatch):
+    from studio.scene import SceneTarget
+
+    target = SceneTarget.open(scene_run)
+    camera = target.intrinsics(1.5, 12)
+    assert (camera.width, camera.height) == (18, 12)
+    pose = target.home_pose()
+    first = target.render(pose, camera)
+    assert np.isclose(target.shares().sum(), 1)
+    assert first.weights.shape[1:3] == (12, 18)
+    calls = []
+    monkeypatch.setattr(target.run, "render", lambda *a, **k: calls.append(a))
+    again = target.render(pose.copy(), camera)
+    assert again is first and not calls
+    edited = target.palette[::-1]
+    image = again.recolor(edited)[0]
+    expected = weights_to_rgb(first.weights[0], edited) + (1 - first.opacity[0, ..., None]) * \
+        first.background
+    assert np.allclose(image, np.clip(expected, 0, 1))
+
+
+def test_scene_turntable_export(scene_run, tmp_path):
+    from studio.scene import SceneTarget
+
+    target = SceneTarget.open(scene_run)
+    gif = tmp_path / "turn.gif"
+    args = (target.palette, target.home_pose(), target.intrinsics(1.0, 8))
+    assert target.export(gif, *args, views=3) == [gif]
+    from PIL import Image
+
+    assert Image.open(gif).n_frames == 3
+    with pytest.raises(OutputExists):
+        target.export(gif, *args, views=3)
+    with pytest.raises(InputError, match=".gif"):
+        target.export(tmp_path / "turn.png", *args, views=3)
