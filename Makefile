@@ -43,9 +43,16 @@ demo: $(BIN)/.installed
 	@echo "  nerf/turntable/harmonized-best.gif  novel views with the harmonised palette"
 	@echo "  nerf/turntable/render.npz      the weight render; render again with another"
 	@echo "                                 --palette to recolour it without the network"
+	@echo
+	@echo "Edit live in the browser: $(BIN)/palette-studio $(DEMO_OUT)/weights.npz"
+	@echo "                      or: $(BIN)/palette-studio $(NERF)/run"
 
+# Browser tests (palette-studio) need Debian's chromium and chromium-driver; without them they
+# are skipped and the summary says so (-rs).
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q
+	@command -v chromium >/dev/null && command -v chromedriver >/dev/null || \
+		echo "chromium or chromedriver missing: the browser tests will be skipped"
+	$(BIN)/python -m pytest -q -rs
 
 bench: $(BIN)/.installed
 	$(BIN)/python benchmarks/bench_decompose.py

@@ -28,7 +28,7 @@ from .editor import PaletteEditor
 from .photos import THUMBNAIL_PIXELS, PhotoTarget
 from .scene import MAX_TURNTABLE, SceneTarget
 
-BACKDROP = np.array([0.13, 0.13, 0.15])  # letterbox bars around a photo
+BACKDROP = np.array([33, 33, 38], np.uint8)  # letterbox bars around a photo
 STRIP = 7  # thumbnails around the current photo
 PREVIEW_ROWS = 24  # rows of a scene view while the camera moves
 SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
@@ -46,7 +46,7 @@ def check_port(host: str, port: int) -> None:
 
 
 def letterbox(image: np.ndarray, aspect: float) -> np.ndarray:
-    """(H, W, 3) -> padded with ``BACKDROP`` to width / height = ``aspect``, centred."""
+    """(H, W, 3) uint8 -> padded with ``BACKDROP`` to width / height = ``aspect``, centred."""
     h, w = image.shape[:2]
     width, height = max(w, round(h * aspect)), max(h, round(w / aspect))
     canvas = np.empty((height, width, 3), image.dtype)
@@ -211,7 +211,7 @@ class Studio:
 
     def _show_photo(self, client) -> None:
         image = self.target.view(self.image, self.shown_palette)
-        client.scene.set_background_image(to_bytes(letterbox(image, client.camera.aspect)),
+        client.scene.set_background_image(letterbox(image, client.camera.aspect),
                                           format="jpeg", jpeg_quality=JPEG_QUALITY)
 
     def _show_strip(self) -> None:
@@ -222,17 +222,24 @@ class Studio:
         height = max(t.shape[0] for t in thumbs)
         tiles = []
         for i, thumb in zip(around, thumbs):
-            tile = np.ones((height + 6, thumb.shape[1] + 6, 3)) * (
-                [1.0, 0.8, 0.2] if i == self.image else BACKDROP)
+            tile = np.empty((height + 6, thumb.shape[1] + 6, 3), np.uint8)
+            tile[:] = (255, 204, 51) if i == self.image else BACKDROP
             tile[3:3 + thumb.shape[0], 3:-3] = thumb
             tiles.append(tile)
-        self.strip.image = to_bytes(np.concatenate(tiles, axis=1))
+        self.strip.image = np.concatenate(tiles, axis=1)
 
     # Scene mode ---------------------------------------------------------------------
 
     def _connect(self, client) -> None:
         if self.target.mode == "photos":
-            client.camera.on_update(lambda camera: self._show_photo(client))
+            aspect = [client.camera.aspect]
+
+            def resized(camera) -> None:  # the photo follows the camera; only its frame changes
+                if abs(camera.aspect - aspect[0]) > 1e-3:
+                    aspect[0] = camera.aspect
+                    self._show_photo(client)
+
+            client.camera.on_update(resized)
             with self.lock:
                 self._show_photo(client)
                 self._show_strip()
@@ -256,6 +263,7 @@ class Studio:
 
     def _write(self, client, write) -> None:
         """Run ``write(force)``; if an output exists, ask the user before replacing it."""
+        self.say("writing ...")
         try:
             written = write(False)
         except OutputExists as exc:
@@ -295,6 +303,7 @@ class SceneView:
     def __init__(self, studio: Studio, client):
         self.studio, self.client = studio, client
         self.render = None  # the WeightRender on screen
+        self.drawn = (0, 0.0)  # rows of the last view drawn, and when (time.perf_counter)
         self.moved = threading.Event()
         self.running = True
         client.camera.on_update(lambda camera: self.moved.set())
@@ -329,6 +338,7 @@ class SceneView:
             self.studio.say(f"**error:** {exc}")
             return
         self.recolour()
+        self.drawn = (self.render.weights.shape[1], time.perf_counter())
 
     def recolour(self) -> None:
         if self.render is None:

@@ -2,7 +2,7 @@
 
 Only the image on screen and its neighbours' thumbnails are read: a stack of a
 hundred photos opens as fast as one. Recolouring is ``weights @ basis(palette)``
-(``palette_core.basis.weights_to_rgb``) on weights kept at display size.
+(``palette_core.basis``) on weights kept at display size, in float32.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from harmonize import palette_shares
-from palette_core.basis import weights_to_rgb
+from palette_core.basis import basis_terms
 from palette_core.recolor import recolor_stack
 from palette_core.stack import WeightStack, read_stack
 
@@ -77,10 +77,11 @@ class PhotoTarget:
         return self._views[key]
 
     def view(self, i: int, palette: np.ndarray, max_pixels: int = DISPLAY_PIXELS) -> np.ndarray:
-        """(h, w, 3) float64 image ``i`` recoloured with ``palette``, clipped to [0, 1]."""
-        rgb = weights_to_rgb(self.weights(i, max_pixels), palette, self.stack.basis,
-                             self.stack.order)
-        return np.clip(rgb, 0, 1)
+        """(h, w, 3) uint8 image ``i`` recoloured with ``palette``: ``weights @ basis`` in
+        float32, for the screen (exports use ``recolor_stack``)."""
+        terms = 255 * basis_terms(palette, self.stack.basis, self.stack.order).astype(np.float32)
+        rgb = self.weights(i, max_pixels) @ terms
+        return np.clip(rgb + 0.5, 0, 255, out=rgb).astype(np.uint8)
 
     def default_export(self) -> Path:
         return self.path.with_name(f"{self.path.stem}_studio")

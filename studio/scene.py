@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from collections import OrderedDict
 from pathlib import Path
 
@@ -43,6 +44,7 @@ class SceneTarget:
         self.run = run
         self.path = path
         self._views: OrderedDict[tuple, WeightRender] = OrderedDict()
+        self._lock = threading.Lock()  # one render at a time, whichever tab asks
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> SceneTarget:
@@ -79,13 +81,14 @@ class SceneTarget:
     def render(self, pose: np.ndarray, intrinsics: Intrinsics) -> WeightRender:
         """The weights of one view (cached by pose and camera)."""
         key = (np.round(pose, 6).tobytes(), intrinsics.width, intrinsics.height)
-        if key not in self._views:
-            self._views[key] = render_weights(self.run, ["view"], pose[None], {}, False,
-                                              intrinsics)
-            if len(self._views) > CACHED_VIEWS:
-                self._views.popitem(last=False)
-        self._views.move_to_end(key)
-        return self._views[key]
+        with self._lock:
+            if key not in self._views:
+                self._views[key] = render_weights(self.run, ["view"], pose[None], {}, False,
+                                                  intrinsics)
+                if len(self._views) > CACHED_VIEWS:
+                    self._views.popitem(last=False)
+            self._views.move_to_end(key)
+            return self._views[key]
 
     def shares(self) -> np.ndarray:
         """(K,) each colour's share of the weights of a low-resolution turntable."""

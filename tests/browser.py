@@ -74,3 +74,39 @@ def type_colour(driver, label: str, hex_code: str) -> None:
 
 def close_to(a, b, tolerance: int) -> bool:
     return a is not None and max(abs(int(u) - int(v)) for u, v in zip(a, b)) <= tolerance
+
+
+#: A watcher of the viewport's centre pixel, frame by frame: ``__studio.latency()`` is the
+#: time from the last Enter key to the first frame whose centre changed, in ms.
+_WATCH = """
+const canvas = [...document.querySelectorAll('canvas')]
+    .sort((a, b) => b.width * b.height - a.width * a.height)[0];
+const context = document.createElement('canvas').getContext('2d', {willReadFrequently: true});
+const watch = {sent: null, changed: null, last: null};
+watch.latency = () => watch.changed === null ? null : watch.changed - watch.sent;
+document.addEventListener('keydown', event => {
+    if (event.key === 'Enter') { watch.sent = performance.now(); watch.changed = null; }
+}, true);
+function poll() {
+    context.drawImage(canvas, canvas.width >> 1, canvas.height >> 1, 1, 1, 0, 0, 1, 1);
+    const now = Array.from(context.getImageData(0, 0, 1, 1).data.slice(0, 3));
+    if (watch.sent !== null && watch.changed === null && watch.last !== null
+        && now.reduce((sum, v, i) => sum + Math.abs(v - watch.last[i]), 0) > 30) {
+        watch.changed = performance.now();
+    }
+    watch.last = now;
+    requestAnimationFrame(poll);
+}
+requestAnimationFrame(poll);
+window.__studio = watch;
+"""
+
+
+def watch_centre(driver) -> None:
+    """Start timing palette changes in the page (``change_latency``)."""
+    driver.execute_script(_WATCH)
+
+
+def change_latency(driver, timeout: float = 10.0) -> float | None:
+    """Milliseconds from the last Enter typed to the viewport's centre changing."""
+    return wait_for(lambda: driver.execute_script("return window.__studio.latency()"), timeout)

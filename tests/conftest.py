@@ -20,3 +20,21 @@ def photo_dir(tmp_path, rng):
         img = np.stack([xx / w, yy / h, rng.random((h, w))], -1)
         Image.fromarray((img * 255).astype(np.uint8)).save(folder / name)
     return folder
+
+
+@pytest.fixture(scope="session")
+def scene_run(tmp_path_factory):
+    """A tiny weight NeRF of a 16x16 still life."""
+    pytest.importorskip("torch")
+    from nerf_stage.cli import main as nerf
+    from palette_core.cli.decompose import main as decompose
+
+    root = tmp_path_factory.mktemp("studio")
+    scene = root / "sl"
+    assert nerf(["simulate", "still-life", str(scene), "--resolution", "16", "--spp", "2",
+                 "--views", "4", "1", "1"]) == 0
+    assert decompose([str(scene / "train"), "-k", "4", "-o", str(scene / "weights.npz")]) == 0
+    assert nerf(["train", str(scene), "-o", str(root / "run"), "--pretrain-iters", "2",
+                 "--finetune-iters", "2", "--batch-rays", "64", "--grid-voxels", str(12**3),
+                 "--head-width", "16"]) == 0
+    return root / "run"

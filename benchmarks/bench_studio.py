@@ -1,0 +1,155 @@
+"""palette-studio latency in a real browser (headless Chromium, software WebGL).
+
+Photo mode: a 1-megapixel photo (a mosaic of scikit-image photos, as in
+bench_collection.py) decomposed with K = 6. Scene mode: a trained weight NeRF
+(default `demo_out/nerf/run` from `make demo`, 100x100 views). For each, a colour
+is typed into the panel N times (alternating between the dominant colour of the
+viewport's centre and its complement) and the page times, frame by frame, Enter to
+the first frame whose centre pixel changed (tests/browser.py). Scene mode also
+times a camera move to the refined view sent to the browser. Saves a screenshot of
+each mode.
+
+    python benchmarks/bench_studio.py [--run demo_out/nerf/run] [--out benchmarks/out] [-n 20]
+
+Targets (issue 17): photo <= 100 ms, scene view <= 50 ms, refined view <= 1 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_collection import mosaic, photos  # noqa: E402
+
+from palette_core.decompose import decompose  # noqa: E402
+from studio.app import Studio, camera_pose, to_bytes  # noqa: E402
+from studio.photos import PhotoTarget  # noqa: E402
+from studio.scene import SceneTarget  # noqa: E402
+from tests import browser  # noqa: E402
+
+WINDOW = (1280, 800)
+
+
+def photo_stack(folder: Path) -> Path:
+    """A 1224 x 816 (1.0 MP) photo mosaic and its weight stack."""
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    image = folder / "mosaic.png"
+    Image.fromarray(mosaic(np.random.default_rng(0), photos(), 816, 1224)).save(image)
+    stack = folder / "mosaic.npz"
+    decompose([image], k=6).write(stack, force=True)
+    return stack
+
+
+def dominant_colour(studio: Studio, weights: np.ndarray) -> int:
+    """The palette colour with the largest weight at the centre of a (H, W, M) view."""
+    h, w = weights.shape[:2]
+    return int(np.argmax(weights[h // 2, w // 2, :len(studio.editor.palette)]))
+
+
+def time_edits(driver, studio: Studio, index: int, n: int) -> tuple[list[float], list[float]]:
+    """Type colour ``index`` n times; browser latencies (ms) and server redraws (ms)."""
+    browser.watch_centre(driver)
+    original = to_bytes(studio.editor.palette[index])
+    page, server = [], []
+    for i in range(n):
+        colour = 255 - original if i % 2 == 0 else original
+        browser.type_colour(driver, f"colour {index + 1}", "#{:02x}{:02x}{:02x}".format(*colour))
+        latency = browser.change_latency(driver)
+        if latency is None:
+            raise RuntimeError("the viewport did not change within 10 s")
+        page.append(latency)
+        server.append(studio.last_latency_ms)
+        time.sleep(0.3)
+    return page, server
+
+
+def summary(name: str, values: list[float], target: float | None = None) -> str:
+    values = np.asarray(values)
+    line = (f"{name:<44} median {np.median(values):7.1f}   p90 {np.percentile(values, 90):7.1f}"
+            f"   max {values.max():7.1f}")
+    return line + (f"   (target <= {target:g})" if target else "")
+
+
+def bench_photos(driver, out: Path, n: int) -> None:
+    target = PhotoTarget.open(photo_stack(out / "studio"))
+    studio = Studio(target, port=0)
+    try:
+        driver.get(studio.url)
+        browser.wait_for(lambda: browser.pixel(driver) not in (None, [0, 0, 0]))
+        time.sleep(2)
+        index = dominant_colour(studio, target.weights(0))
+        page, server = time_edits(driver, studio, index, n)
+        h, w = target.weights(0).shape[:2]
+        print(summary(f"photo {w}x{h}: change -> new frame (ms)", page, 100))
+        print(summary("  of which server recolour + encode (ms)", server))
+        driver.save_screenshot(str(out / "studio_photos.png"))
+    finally:
+        studio.stop()
+
+
+def bench_scene(driver, run: Path, out: Path, n: int) -> None:
+    target = SceneTarget.open(run)
+    studio = Studio(target, port=0)
+    try:
+        driver.get(studio.url)
+        rows = target.run.intrinsics.height
+        view = browser.wait_for(lambda: next(iter(studio.views.values()), None))
+        browser.wait_for(lambda: view.drawn[0] == rows, timeout=60)
+        time.sleep(2)
+        index = dominant_colour(studio, view.render.weights[0])
+        page, server = time_edits(driver, studio, index, n)
+        h, w = view.render.weights.shape[1:3]
+        print(summary(f"scene {w}x{h}: change -> new frame (ms)", page, 50))
+        print(summary("  of which server recolour + encode (ms)", server))
+        refined = []
+        pose = camera_pose(view.client.camera)
+        for i in range(n):
+            angle = np.radians(4 * (i + 1))
+            moved = pose[:3, 3] - target.run.box.centre
+            turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0],
+                             [-np.sin(angle), 0, np.cos(angle)]])
+            start = time.perf_counter()
+            view.client.camera.position = target.run.box.centre + turn @ moved
+            if not browser.wait_for(lambda since=start: view.drawn[0] == rows
+                                    and view.drawn[1] > since, timeout=30):
+                raise RuntimeError("no refined view within 30 s")
+            refined.append(view.drawn[1] - start)
+        print(summary("scene: camera moved -> refined view sent (s)", refined, 1))
+        driver.save_screenshot(str(out / "studio_scene.png"))
+    finally:
+        studio.stop()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", default="demo_out/nerf/run", help="a nerf-stage run folder")
+    parser.add_argument("--out", default="benchmarks/out")
+    parser.add_argument("-n", type=int, default=20, help="edits (and camera moves) timed")
+    args = parser.parse_args()
+    if not (browser.CHROMIUM and browser.CHROMEDRIVER):
+        sys.exit(browser.MISSING)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    driver = browser.chromium(*WINDOW)
+    try:
+        bench_photos(driver, out, args.n)
+        if Path(args.run).is_dir():
+            bench_scene(driver, Path(args.run), out, args.n)
+        else:
+            print(f"no run at {args.run}: scene mode skipped (make demo trains one)")
+    finally:
+        driver.quit()
+    print(f"screenshots in {out}/studio_*.png")
+
+
+if __name__ == "__main__":
+    main()

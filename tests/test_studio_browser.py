@@ -1,0 +1,102 @@
+"""palette-studio in a real browser: a colour typed into the panel recolours the viewport.
+
+Headless Chromium from Debian's packages (tests/browser.py); skipped, with the reason,
+where it is not installed.
+"""
+
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("viser")
+pytest.importorskip("selenium")
+
+from palette_core.stack import WeightStack, write_stack  # noqa: E402
+from studio.app import Studio, to_bytes  # noqa: E402
+from studio.photos import PhotoTarget  # noqa: E402
+
+from . import browser  # noqa: E402
+
+pytestmark = pytest.mark.skipif(not (browser.CHROMIUM and browser.CHROMEDRIVER),
+                                reason=browser.MISSING)
+
+PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9]])
+TOLERANCE = 12  # JPEG transport and texture filtering, in 0..255 levels
+
+
+@pytest.fixture(scope="module")
+def driver():
+    chrome = browser.chromium()
+    yield chrome
+    chrome.quit()
+
+
+@pytest.fixture
+def serve():
+    started = []
+
+    def start(target):
+        started.append(Studio(target, port=0))
+        return started[-1]
+
+    yield start
+    for studio in started:
+        studio.stop()
+
+
+def test_photo_mode_recolours_live(driver, serve, tmp_path):
+    """Three stripes, one palette colour each: typing a new colour 2 recolours the middle."""
+    weights = np.zeros((30, 60, 3), np.float32)
+    for j in range(3):
+        weights[:, 20 * j:20 * (j + 1), j] = 1
+    write_stack(WeightStack(PALETTE, [weights], ["stripes.png"], "mvc"), tmp_path / "w.npz")
+    studio = serve(PhotoTarget.open(tmp_path / "w.npz"))
+    driver.get(studio.url)
+    middle = to_bytes(PALETTE[1])
+    assert browser.wait_for(lambda: browser.close_to(browser.pixel(driver), middle, TOLERANCE))
+    browser.type_colour(driver, "colour 2", "#ff00ff")
+    assert browser.wait_for(lambda: browser.close_to(browser.pixel(driver), (255, 0, 255),
+                                                     TOLERANCE), timeout=10)
+    assert studio.editor.palette[1].tolist() == [1, 0, 1]
+    left = to_bytes(PALETTE[0])  # the other stripes keep their colours
+    assert browser.close_to(browser.pixel(driver, 0.05), left, TOLERANCE)
+
+
+def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monkeypatch):
+    """A tiny weight NeRF: once the view is refined, a typed colour gives exactly the
+    recolouring of the cached weights."""
+    from studio.scene import SceneTarget
+
+    studio = serve(SceneTarget.open(scene_run))
+    driver.get(studio.url)
+    rows = studio.target.run.intrinsics.height
+
+    def settled():
+        """The refined view, once the camera has not moved for a second."""
+        views = list(studio.views.values())
+        render = views[0].render if views else None
+        if render is None or render.weights.shape[1] != rows:
+            return None
+        time.sleep(1.0)
+        return render if views[0].render is render else None
+
+    render = browser.wait_for(settled)
+    assert render is not None
+    calls = []
+    monkeypatch.setattr(studio.target.run, "render", lambda *a, **k: calls.append(a))
+    h, w = render.weights.shape[1:3]
+    centre = np.s_[h // 2 - 1:h // 2 + 1, w // 2 - 1:w // 2 + 1]
+    dominant = int(np.argmax(render.weights[0][centre].sum((0, 1))[:len(studio.editor.palette)]))
+    new = to_bytes(1 - studio.editor.palette[dominant])
+    browser.type_colour(driver, f"colour {dominant + 1}", "#{:02x}{:02x}{:02x}".format(*new))
+    assert browser.wait_for(lambda: np.array_equal(to_bytes(studio.editor.palette[dominant]), new))
+    block = to_bytes(render.recolor(studio.editor.palette)[0][centre]).reshape(-1, 3)
+    low, high = block.min(0).astype(int) - 3, block.max(0).astype(int) + 3
+
+    def shows_the_recolouring():
+        got = browser.pixel(driver)
+        return got is not None and all(lo <= g <= hi for g, lo, hi in zip(got, low, high))
+
+    assert browser.wait_for(shows_the_recolouring, timeout=10), (browser.pixel(driver), low, high)
+    assert not calls  # recoloured from the cached weights
