@@ -63,6 +63,8 @@ class Source:
     height, width : int
     fps : float or None
         Frames per second of a video.
+    keyframes : tuple of int
+        Frames of a video where decoding can start (its key frames), ascending.
     """
 
     path: str
@@ -71,6 +73,7 @@ class Source:
     height: int
     width: int
     fps: float | None = None
+    keyframes: tuple[int, ...] = (0,)
 
     @property
     def video(self) -> bool:
@@ -111,6 +114,7 @@ def _probe(path: Path, name: str, max_pixels: int) -> Source:
             frames = stream.frames or sum(1 for _ in container.decode(video=0))
             fps = float(stream.average_rate or stream.guessed_rate or 25)
             height, width = stream.codec_context.height, stream.codec_context.width
+            keyframes = _keyframes(container, stream)
     except (av.FFmpegError, IndexError, OSError) as exc:
         raise InputError(f"cannot read video {path}: {exc}") from None
     if width * height > max_pixels:
@@ -118,7 +122,19 @@ def _probe(path: Path, name: str, max_pixels: int) -> Source:
                          f"{max_pixels} allows")
     if frames < 1:
         raise InputError(f"video {path} has no frames")
-    return Source(str(path), name, frames, height, width, fps)
+    return Source(str(path), name, frames, height, width, fps, keyframes)
+
+
+def _keyframes(container, stream) -> tuple[int, ...]:
+    """Frame indices of a video's key frames, from its packets (nothing is decoded)."""
+    rate, base, origin = stream.average_rate, stream.time_base, stream.start_time or 0
+    container.seek(origin, stream=stream, backward=True)
+    found = {0}
+    if rate and base:
+        found |= {round(float((packet.pts - origin) * base * rate))
+                  for packet in container.demux(stream)
+                  if packet.is_keyframe and packet.pts is not None}
+    return tuple(sorted(found))
 
 
 def read_frames(source: Source, start: int = 0, stop: int | None = None,
@@ -134,12 +150,33 @@ def read_frames(source: Source, start: int = 0, stop: int | None = None,
     import av
 
     with av.open(source.path) as container:
-        for index, frame in enumerate(container.decode(video=0)):
+        stream = container.streams.video[0]
+        for index, frame in _indexed_frames(container, stream, start):
             if index >= stop:
                 break
             if index >= start:
                 pixels = frame.to_ndarray(format="rgb24")
                 yield pixels, np.ones(pixels.shape[:2], bool)
+
+
+def _indexed_frames(container, stream, start: int):
+    """(index, frame) of a video from the key frame at or before frame ``start``, so that a
+    task in the middle of a video does not decode it from the beginning. Indices come
+    from the timestamps at the average frame rate; where a seek cannot be placed that
+    way, decoding starts at frame 0."""
+    rate, base, origin = stream.average_rate, stream.time_base, stream.start_time or 0
+    if start > 0 and rate and base:
+        container.seek(int(origin + start / rate / base), stream=stream, backward=True)
+        frames = container.decode(stream)
+        first = next(frames, None)
+        if first is not None and first.pts is not None:
+            index = round(float((first.pts - origin) * base * rate))
+            if index <= start:
+                yield index, first
+                yield from enumerate(frames, index + 1)
+                return
+        container.seek(origin, stream=stream, backward=True)
+    yield from enumerate(container.decode(stream))
 
 
 def _decode(codes: np.ndarray) -> np.ndarray:
@@ -158,12 +195,17 @@ class Task:
 
 
 def plan_tasks(sources: list[Source]) -> list[Task]:
-    """Split the collection into tasks of about ``TASK_MEGAPIXELS`` each."""
+    """Split the collection into tasks of about ``TASK_MEGAPIXELS`` each; a video's tasks
+    start at key frames, so that no task decodes frames of another."""
     tasks, first = [], 0
     for source in sources:
         per_task = max(1, int(TASK_MEGAPIXELS * 1e6 // (source.height * source.width)))
-        for start in range(0, source.frames, per_task):
-            stop = min(source.frames, start + per_task)
+        starts = [k for k in source.keyframes if k < source.frames]
+        bounds = [0]
+        for k in starts[1:]:
+            if k - bounds[-1] >= per_task:
+                bounds.append(k)
+        for start, stop in zip(bounds, bounds[1:] + [source.frames]):
             tasks.append(Task(source, start, stop, first + start))
         first += source.frames
     return tasks
@@ -339,34 +381,65 @@ def palette_paths(output: str) -> tuple[Path, Path]:
 
 
 def _pass1(tasks, max_pixels, client, progress, total_mp):
-    if client is None:
-        counter = ColourCounter()
-        with _bar("pass 1 (colours)", total_mp, progress) as bar:
-            for task, frames in _frames_in_order(tasks, max_pixels):
-                for pixels, opaque in frames:
+    with _bar("pass 1 (colours)", total_mp, progress) as bar:
+        if client is None:
+            counter = ColourCounter()
+            for _, frames in _frames_in_order(tasks, max_pixels):
+                for pixels, opaque in _counted(frames, bar):
                     counter.add(pixels, opaque)
-                bar.update(_megapixels(task))
-        return counter.result()
-    futures = client.map(count_task, tasks, max_pixels=max_pixels, pure=False)
-    while len(futures) > 1:  # tree reduction
-        pairs = [futures[i:i + 2] for i in range(0, len(futures), 2)]
-        futures = [client.submit(merge_counts, *pair, pure=False) if len(pair) == 2 else pair[0]
-                   for pair in pairs]
-    return futures[0].result()
+            return counter.result()
+        return _tree_sum(client, client.map(count_task, tasks, max_pixels=max_pixels,
+                                            pure=False), tasks, bar)
+
+
+def _tree_sum(client, counts: list, tasks: list[Task], bar):
+    """Merge the tasks' count tables pairwise as they arrive; no table is held longer than
+    its merge needs it."""
+    finished = _progress(counts, tasks, bar)
+    while len(counts) > 1:
+        pairs = [counts[i:i + 2] for i in range(0, len(counts), 2)]
+        counts = [client.submit(merge_counts, *pair, pure=False) if len(pair) == 2 else pair[0]
+                  for pair in pairs]
+    for _ in finished:
+        pass
+    return counts[0].result()
 
 
 def _pass2(tasks, output, codes, weights, dtype, max_pixels, client, progress, total_mp):
-    if client is None:
-        index = ColourIndex(codes)
-        with _bar("pass 2 (weights)", total_mp, progress) as bar:
+    with _bar("pass 2 (weights)", total_mp, progress) as bar:
+        if client is None:
+            index = ColourIndex(codes)
             for task, frames in _frames_in_order(tasks, max_pixels):
-                write_task(task, output, index, weights, dtype, max_pixels, frames)
-                bar.update(_megapixels(task))
-        return
-    shared_codes, shared_weights = client.scatter([codes, weights], broadcast=True)
-    futures = client.map(write_task, tasks, output=output, index=shared_codes,
-                         weights=shared_weights, dtype=dtype, max_pixels=max_pixels, pure=False)
-    client.gather(futures)
+                write_task(task, output, index, weights, dtype, max_pixels,
+                           _counted(frames, bar))
+            return
+        shared_codes, shared_weights = client.scatter([codes, weights], broadcast=True)
+        written = client.map(write_task, tasks, output=output, index=shared_codes,
+                             weights=shared_weights, dtype=dtype, max_pixels=max_pixels,
+                             pure=False)
+        for _ in _progress(written, tasks, bar):
+            pass
+
+
+def _counted(frames, bar):
+    """The frames, advancing ``bar`` by each one's megapixels."""
+    for pixels, opaque in frames:
+        yield pixels, opaque
+        bar.update(pixels.shape[0] * pixels.shape[1] / 1e6)
+
+
+def _progress(futures: list, tasks: list[Task], bar):
+    """An iterator over the tasks' futures as they finish, advancing ``bar`` and raising
+    the first error; it holds each future only until it has finished."""
+    from distributed import as_completed
+
+    megapixels = {future.key: _megapixels(task) for future, task in zip(futures, tasks)}
+
+    def finish(future) -> None:
+        future.result()  # raises the task's error here
+        bar.update(megapixels[future.key])
+
+    return (finish(future) for future in as_completed(futures))
 
 
 def write_task(task: Task, output: str, index, weights: np.ndarray, dtype: str,

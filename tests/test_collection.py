@@ -18,11 +18,12 @@ from palette_core.collection import decompose_collection  # noqa: E402
 from .helpers import expect_error, weight_invariants  # noqa: E402
 
 
-def make_video(path, rng, frames=6, size=(48, 64), fps=12):
+def make_video(path, rng, frames=6, size=(48, 64), fps=12, keyframe_every=250):
     """A short H.264 clip of drifting colour blobs, generated here (never committed)."""
     yy, xx = np.mgrid[0:size[0], 0:size[1]]
     with av.open(str(path), mode="w") as container:
-        stream = container.add_stream("libx264", rate=fps)
+        stream = container.add_stream("libx264", rate=fps, options={
+            "g": str(keyframe_every), "keyint_min": str(keyframe_every), "sc_threshold": "0"})
         stream.height, stream.width, stream.pix_fmt = *size, "yuv420p"
         for i in range(frames):
             image = np.stack([(xx * 4 + i * 10) % 256, (yy * 5) % 256,
@@ -96,13 +97,27 @@ def test_a_killed_second_pass_resumes(photo_dir, tmp_path, monkeypatch, capsys):
         assert np.array_equal(a, b)
 
 
-def test_a_local_dask_cluster_gives_the_same_stack(photo_dir, tmp_path, rng):
-    make_video(photo_dir / "clip.mp4", rng, frames=4)
+def test_video_tasks_start_at_key_frames_and_seek_there(tmp_path, rng, monkeypatch):
+    clip = make_video(tmp_path / "clip.mp4", rng, frames=9, keyframe_every=3)
+    source = collection.find_sources([clip])[0]
+    assert source.keyframes == (0, 3, 6)
+    monkeypatch.setattr(collection, "TASK_MEGAPIXELS", 4 * 48 * 64 / 1e6)  # 4 frames a task
+    assert [(t.start, t.stop) for t in collection.plan_tasks([source])] == [(0, 6), (6, 9)]
+    whole = [pixels for pixels, _ in collection.read_frames(source)]
+    for start, stop in [(3, 5), (4, 9), (7, 8)]:
+        part = [pixels for pixels, _ in collection.read_frames(source, start, stop)]
+        assert len(part) == stop - start
+        assert all(np.array_equal(a, b) for a, b in zip(part, whole[start:stop]))
+
+
+def test_a_local_dask_cluster_gives_the_same_stack(photo_dir, tmp_path, rng, monkeypatch):
+    make_video(photo_dir / "clip.mp4", rng, frames=6, keyframe_every=2)
+    monkeypatch.setattr(collection, "TASK_MEGAPIXELS", 2 * 48 * 64 / 1e6)  # tasks mid-video
     single = decompose_collection([photo_dir], str(tmp_path / "one.zarr"), k=5, progress=False)
     assert decompose_cli.main([str(photo_dir), "-k", "5", "-o", str(tmp_path / "two.zarr"),
                                "--workers", "2"]) == 0
     one, two = read_stack(tmp_path / "one.zarr"), read_stack(tmp_path / "two.zarr")
     assert np.array_equal(two.palette, single.palette.vertices.astype(np.float32))
-    assert one.names == two.names and len(one.names) == 7
+    assert one.names == two.names and len(one.names) == 9
     for a, b in zip(one.weights, two.weights):
         assert np.allclose(a, b, atol=1e-6)
