@@ -96,7 +96,6 @@ class Studio:
         self.last_latency_ms = float("nan")
         self._build_panel()
         self.server.on_client_connect(self._connect)
-        self.server.on_client_disconnect(lambda client: self.views.pop(client.client_id, None))
 
     def stop(self) -> None:
         for view in list(self.views.values()):
@@ -197,7 +196,7 @@ class Studio:
                 self._show_photo(client)
             self._show_strip()
         else:
-            for view in list(self.views.values()):
+            for view in self._scene_views():
                 view.recolour()
         self.last_latency_ms = 1000 * (time.perf_counter() - start)
 
@@ -248,8 +247,16 @@ class Studio:
         client.camera.fov = self.target.fov_y
         client.camera.up_direction = (0.0, 1.0, 0.0)
         client.camera.position = pose[:3, 3]
-        client.camera.look_at = self.target.run.box.centre
+        client.camera.look_at = self.target.centre
+        self._scene_views()
         self.views[client.client_id] = SceneView(self, client)
+
+    def _scene_views(self) -> list[SceneView]:
+        """The views of the tabs still open (those of closed tabs are stopped and dropped)."""
+        open_tabs = self.server.get_clients()
+        for gone in [cid for cid in self.views if cid not in open_tabs]:
+            self.views.pop(gone).stop()
+        return list(self.views.values())
 
     # Writing ------------------------------------------------------------------------
 

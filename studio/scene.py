@@ -63,13 +63,19 @@ class SceneTarget:
         """Vertical field of view of the training camera, radians."""
         return 2 * math.atan(0.5 * self.run.intrinsics.height / self.run.intrinsics.fy)
 
+    @property
+    def centre(self) -> np.ndarray:
+        """(3,) world centre of what the run found occupied."""
+        return self.run.box.centre + self.run.box.scale * self.run.occupancy.bounds().mean(0)
+
     def home_pose(self) -> np.ndarray:
-        """(4, 4) a camera in front of the scene (+z), 20 degrees up, seeing all of its box."""
-        box = self.run.box
-        distance = 1.1 * np.linalg.norm(box.half) / math.sin(0.5 * self.fov_y)
+        """(4, 4) a camera in front of the scene (+z), 20 degrees up, framing all that the run
+        found occupied."""
+        low, high = self.run.box.scale * self.run.occupancy.bounds()
+        distance = 0.6 * np.linalg.norm(high - low) / math.sin(0.5 * self.fov_y)
         up = math.radians(20)
-        eye = box.centre + distance * np.array([0, math.sin(up), math.cos(up)])
-        return look_at(eye, box.centre)
+        return look_at(self.centre + distance * np.array([0, math.sin(up), math.cos(up)]),
+                       self.centre)
 
     def intrinsics(self, aspect: float, height: int) -> Intrinsics:
         """A camera of the training camera's vertical field of view, ``height`` rows and
@@ -92,7 +98,7 @@ class SceneTarget:
 
     def shares(self) -> np.ndarray:
         """(K,) each colour's share of the weights of a low-resolution turntable."""
-        poses = turntable_poses(self.home_pose(), self.run.box.centre, SHARE_VIEWS)
+        poses = turntable_poses(self.home_pose(), self.centre, SHARE_VIEWS)
         render = render_weights(self.run, [f"turn_{i}" for i in range(SHARE_VIEWS)], poses, {},
                                 False, self.intrinsics(1.0, SHARE_SIZE))
         return palette_shares(render.as_stack())
@@ -109,7 +115,7 @@ class SceneTarget:
         if not 1 <= views <= MAX_TURNTABLE:
             raise InputError(f"a turntable has 1 to {MAX_TURNTABLE} views, got {views}")
         check_writable([path], force)
-        poses = turntable_poses(pose, self.run.box.centre, views)
+        poses = turntable_poses(pose, self.centre, views)
         frames = np.concatenate([self.render(p, intrinsics).recolor(palette) for p in poses])
         with atomic_outputs(force) as stage:
             write_gif(stage(path), frames)
