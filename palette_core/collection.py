@@ -26,6 +26,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -281,6 +282,18 @@ class ColourIndex:
         self.table[(small[:, 0] << 16) | (small[:, 1] << 8) | small[:, 2]] = \
             np.flatnonzero(eight).astype(np.int32)
 
+    _built: ClassVar[dict[int, ColourIndex]] = {}
+
+    @classmethod
+    def of(cls, codes: np.ndarray) -> ColourIndex:
+        """The index of ``codes``, built once per process for the same array (a dask worker
+        gets the scattered codes once and runs many tasks on them)."""
+        index = cls._built.get(id(codes))
+        if index is None or index.codes is not codes:
+            cls._built.clear()  # one collection at a time: the 64 MiB table of the last
+            index = cls._built[id(codes)] = cls(codes)
+        return index
+
     def __call__(self, pixels: np.ndarray, source: Source) -> np.ndarray:
         if pixels.dtype == np.uint8:
             index = self.table[pack_codes(pixels, 8)]
@@ -347,8 +360,7 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
     start = time.perf_counter()
     sources = find_sources(inputs, max_pixels)
     tasks = plan_tasks(sources)
-    total_mp = sum(s.frames * s.height * s.width for s in sources) / 1e6
-    codes, counts = _pass1(tasks, max_pixels, client, progress, total_mp)
+    codes, counts = _pass1(tasks, max_pixels, client, progress)
     if not counts.any():
         raise InputError("every pixel of every image is fully transparent: there are no colours "
                          "to take a palette from")
@@ -361,8 +373,7 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
     store = _open_store(output, collection, k, max_error, palette_method, dtype, resume)
     weights = rgb_to_mvc_weights(_decode(codes), poly).astype(np.float32)
     todo = [t for t in tasks if not _complete(store, t)]
-    _pass2(todo, output, codes, weights, dtype, max_pixels, client, progress,
-           sum((t.stop - t.start) * t.source.height * t.source.width for t in todo) / 1e6)
+    _pass2(todo, output, codes, weights, dtype, max_pixels, client, progress)
     timings["pass2"] = time.perf_counter() - start
     store.attrs["meta"] = json.dumps({**json.loads(store.attrs["meta"]), "timings": timings})
     with atomic_outputs(force or resume) as stage:
@@ -380,8 +391,8 @@ def palette_paths(output: str) -> tuple[Path, Path]:
     return Path(stem + ".palette.png"), Path(stem + ".palette.json")
 
 
-def _pass1(tasks, max_pixels, client, progress, total_mp):
-    with _bar("pass 1 (colours)", total_mp, progress) as bar:
+def _pass1(tasks, max_pixels, client, progress):
+    with _bar("pass 1 (colours)", tasks, progress) as bar:
         if client is None:
             counter = ColourCounter()
             for _, frames in _frames_in_order(tasks, max_pixels):
@@ -405,8 +416,8 @@ def _tree_sum(client, counts: list, tasks: list[Task], bar):
     return counts[0].result()
 
 
-def _pass2(tasks, output, codes, weights, dtype, max_pixels, client, progress, total_mp):
-    with _bar("pass 2 (weights)", total_mp, progress) as bar:
+def _pass2(tasks, output, codes, weights, dtype, max_pixels, client, progress):
+    with _bar("pass 2 (weights)", tasks, progress) as bar:
         if client is None:
             index = ColourIndex(codes)
             for task, frames in _frames_in_order(tasks, max_pixels):
@@ -422,10 +433,10 @@ def _pass2(tasks, output, codes, weights, dtype, max_pixels, client, progress, t
 
 
 def _counted(frames, bar):
-    """The frames, advancing ``bar`` by each one's megapixels."""
+    """The frames, advancing ``bar`` by each one's pixels."""
     for pixels, opaque in frames:
         yield pixels, opaque
-        bar.update(pixels.shape[0] * pixels.shape[1] / 1e6)
+        bar.update(pixels.shape[0] * pixels.shape[1])
 
 
 def _progress(futures: list, tasks: list[Task], bar):
@@ -433,11 +444,11 @@ def _progress(futures: list, tasks: list[Task], bar):
     the first error; it holds each future only until it has finished."""
     from distributed import as_completed
 
-    megapixels = {future.key: _megapixels(task) for future, task in zip(futures, tasks)}
+    pixels = {future.key: _pixels(task) for future, task in zip(futures, tasks)}
 
     def finish(future) -> None:
         future.result()  # raises the task's error here
-        bar.update(megapixels[future.key])
+        bar.update(pixels[future.key])
 
     return (finish(future) for future in as_completed(futures))
 
@@ -447,13 +458,13 @@ def write_task(task: Task, output: str, index, weights: np.ndarray, dtype: str,
     """Pass 2 of one task: each frame's weights into its chunk, then mark it complete.
 
     ``index`` is a ``ColourIndex``, or the sorted distinct codes to build one from (on a
-    dask worker, where each task builds its own); ``frames`` the task's frames when the
-    caller is already reading them (``_frames_in_order``).
+    dask worker, once per worker: ``ColourIndex.of``); ``frames`` the task's frames when
+    the caller is already reading them (``_frames_in_order``).
     """
     import zarr
 
     if not isinstance(index, ColourIndex):
-        index = ColourIndex(index)
+        index = ColourIndex.of(index)
     store = zarr.open_group(output, mode="r+")
     array = store[_array_name(task.source, store)]
     complete = store["complete"]
@@ -481,14 +492,16 @@ def _frames_in_order(tasks: list[Task], max_pixels: int):
         yield task, itertools.islice(frames, task.stop - task.start)
 
 
-def _megapixels(task: Task) -> float:
-    return (task.stop - task.start) * task.source.height * task.source.width / 1e6
+def _pixels(task: Task) -> int:
+    return (task.stop - task.start) * task.source.height * task.source.width
 
 
-def _bar(label: str, total_mp: float, progress: bool):
+def _bar(label: str, tasks: list[Task], progress: bool):
+    """A progress bar over the tasks' pixels (shown as Mpx, Mpx/s)."""
     from tqdm import tqdm
 
-    return tqdm(total=round(total_mp, 2), desc=label, unit="MP", disable=not progress)
+    return tqdm(total=sum(map(_pixels, tasks)), desc=label, unit="px", unit_scale=True,
+                disable=not progress)
 
 
 def _store_exists(output: str) -> bool:

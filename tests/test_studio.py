@@ -173,3 +173,37 @@ def test_scene_turntable_export(scene_run, tmp_path):
         target.export(gif, *args, views=3)
     with pytest.raises(InputError, match=".gif"):
         target.export(tmp_path / "turn.png", *args, views=3)
+
+
+def test_a_hundred_images_open_without_reading_them(tmp_path, rng):
+    """Only the image on screen and the thumbnails beside it are read."""
+    from studio.app import STRIP
+
+    class Counting(list):
+        reads = 0
+
+        def __getitem__(self, i):
+            Counting.reads += 1
+            return super().__getitem__(i)
+
+    weights = Counting(rng.dirichlet(np.ones(4), size=(5, 6)).astype(np.float32)
+                       for _ in range(100))
+    stack = WeightStack(PALETTE, weights, [f"p{i:03d}.png" for i in range(100)], "mvc")
+    studio = Studio(PhotoTarget(stack, tmp_path / "w.npz"), port=0)
+    try:
+        assert Counting.reads == 0
+        studio._show_image(50)
+        assert 0 < Counting.reads <= 1 + STRIP
+    finally:
+        studio.stop()
+
+
+def test_photo_mode_reads_zarr_stacks(tmp_path, rng):
+    pytest.importorskip("zarr")
+    from palette_core.collection import write_zarr_stack
+    from palette_core.stack import read_stack
+
+    write_zarr_stack(read_stack(tiny_stack(tmp_path / "w.npz", rng)), tmp_path / "w.zarr")
+    lazy, eager = PhotoTarget.open(tmp_path / "w.zarr"), PhotoTarget.open(tmp_path / "w.npz")
+    assert np.array_equal(lazy.view(2, PALETTE), eager.view(2, PALETTE))
+    assert np.allclose(lazy.shares(), eager.shares())
