@@ -69,7 +69,7 @@ def time_edits(driver, studio: Studio, index: int, n: int) -> tuple[list[float],
         if latency is None:
             raise RuntimeError("the viewport did not change within 10 s")
         page.append(latency)
-        server.append(studio.last_latency_ms)
+        server.append(studio.last_redraw_ms)
         time.sleep(0.3)
     return page, server
 

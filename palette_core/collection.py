@@ -470,8 +470,12 @@ def write_task(task: Task, output: str, index, weights: np.ndarray, dtype: str,
     complete = store["complete"]
     if frames is None:
         frames = read_frames(task.source, task.start, task.stop, max_pixels)
+    gathered = None  # one buffer for the frames of a task: no fresh pages per frame
     for offset, (pixels, _) in enumerate(frames):
-        frame = stored_weights(weights[index(pixels, task.source)], dtype)
+        codes = index(pixels, task.source)
+        if gathered is None or len(gathered) != codes.size:
+            gathered = np.empty((codes.size, weights.shape[1]), weights.dtype)
+        frame = stored_weights(np.take(weights, codes.ravel(), axis=0, out=gathered), dtype)
         frame = frame.reshape(*pixels.shape[:2], -1)
         if task.source.video:
             array[task.start + offset] = frame

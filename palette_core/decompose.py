@@ -225,7 +225,7 @@ def stored_weights(weights: np.ndarray, dtype: str) -> np.ndarray:
     """(H, W, K) weights in the storage type; float16 rounding residuals go to each pixel's
     largest weight, so that sums stay within ``FLOAT16_SUM_TOL`` of one."""
     if dtype != "float16":
-        return weights.astype(dtype)
+        return weights.astype(dtype, copy=False)
     rounded = weights.astype(np.float16)
     residual = 1.0 - rounded.astype(np.float32).sum(-1, keepdims=True)
     largest = np.argmax(weights, axis=-1)[..., None]

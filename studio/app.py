@@ -93,7 +93,7 @@ class Studio:
                                             verbose=False)
         self.url = f"http://{host}:{self.server.get_port()}"
         self.server.scene.set_up_direction("+y")
-        self.last_latency_ms = float("nan")
+        self.last_redraw_ms = float("nan")
         self._build_panel()
         self.server.on_client_connect(self._connect)
 
@@ -198,7 +198,7 @@ class Studio:
         else:
             for view in self._scene_views():
                 view.recolour()
-        self.last_latency_ms = 1000 * (time.perf_counter() - start)
+        self.last_redraw_ms = 1000 * (time.perf_counter() - start)
 
     # Photo mode ---------------------------------------------------------------------
 
