@@ -165,13 +165,13 @@ class OccupancyGrid(nn.Module):
     def bounds(self) -> np.ndarray:
         """(2, 3) lowest and highest corner of the occupied cells, normalised units (the
         whole box when none is occupied)."""
-        cells = torch.nonzero(self.occupied).cpu()
-        if len(cells) == 0:
-            return np.stack([-self.extent.cpu().numpy(), self.extent.cpu().numpy()])
-        size = (2 * self.extent / self.resolution).cpu()
-        low = cells.min(0).values * size - self.extent.cpu()
-        high = (cells.max(0).values + 1) * size - self.extent.cpu()
-        return torch.stack([low, high]).numpy().astype(np.float64)
+        extent, cells = self.extent.cpu(), torch.nonzero(self.occupied).cpu()
+        low, high = -extent, extent
+        if len(cells):
+            size = 2 * extent / self.resolution.cpu()
+            low = cells.min(0).values * size - extent
+            high = (cells.max(0).values + 1) * size - extent
+        return torch.stack([low, high]).double().numpy()
 
     def lookup(self, x: torch.Tensor) -> torch.Tensor:
         """(P,) bool: points inside the box and in an occupied cell."""

@@ -15,7 +15,7 @@ from nerf_stage.config import GridConfig, MLPConfig, TrainConfig  # noqa: E402
 from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.editing import read_render  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
-from nerf_stage.rendering import composite, scene_box, visual_hull  # noqa: E402
+from nerf_stage.rendering import OccupancyGrid, composite, scene_box, visual_hull  # noqa: E402
 from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
 from nerf_stage.trainer import train  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
@@ -97,6 +97,14 @@ def test_visual_hull_keeps_the_objects(still_life):
         cell = np.floor((np.array(centre) - box.centre + box.half) / (2 * box.half) * 16)
         assert hull[tuple(cell.astype(int))]
     assert 0 < hull.mean() < 1
+
+
+def test_occupancy_bounds_frame_the_occupied_cells():
+    grid = OccupancyGrid(torch.tensor([1.0, 0.5, 1.0]), 8 * 4 * 8)
+    assert np.allclose(grid.bounds(), [[-1, -0.5, -1], [1, 0.5, 1]])  # all occupied
+    grid.occupied.zero_()
+    grid.occupied[2, 1, 7] = True
+    assert np.allclose(grid.bounds(), [[-0.5, -0.25, 0.75], [-0.25, 0.0, 1.0]])
 
 
 def test_orbit_sweeps_the_front_arc_and_looks_at_the_centre():
