@@ -118,6 +118,24 @@ def test_studio_edits_and_serves(tmp_path, rng):
         studio.stop()
 
 
+def test_no_request_reads_other_files(tmp_path, rng):
+    import http.client
+
+    stack = tiny_stack(tmp_path / "w.npz", rng)
+    studio = Studio(PhotoTarget.open(stack), port=0)
+    try:
+        port = int(studio.url.rsplit(":", 1)[1])
+        for path in ["/../../../../etc/passwd", "/%2e%2e/%2e%2e/%2e%2e/etc/passwd",
+                     f"/{stack}", f"/..{stack}", "/" + "../" * 12 + str(stack)]:
+            connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+            connection.request("GET", path)
+            response = connection.getresponse()
+            assert response.status == 404, path
+            connection.close()
+    finally:
+        studio.stop()
+
+
 def test_cli_bad_input(tmp_path, rng, capsys):
     expect_error(studio_main, [str(tmp_path / "missing.npz"), "--no-browser"], "does not exist",
                  capsys)
