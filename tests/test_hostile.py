@@ -314,9 +314,12 @@ def test_stale_temporaries_are_swept(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
 def test_signals_clean_up(tmp_path, sig):
     child = textwrap.dedent(f"""
-        import sys, time
+        import signal, sys, time
         from palette_core.cli import run_cli
         from palette_core.outputs import atomic_outputs, publish_folder
+
+        # a shell's background job starts with SIGINT ignored; a terminal's Ctrl+C does not
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
         def body():
             with atomic_outputs() as stage, publish_folder({str(tmp_path / "dir")!r}) as d:
