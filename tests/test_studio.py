@@ -225,3 +225,25 @@ def test_photo_mode_reads_zarr_stacks(tmp_path, rng):
     lazy, eager = PhotoTarget.open(tmp_path / "w.zarr"), PhotoTarget.open(tmp_path / "w.npz")
     assert np.array_equal(lazy.view(2, PALETTE), eager.view(2, PALETTE))
     assert np.allclose(lazy.shares(), eager.shares())
+
+
+def test_the_url_is_the_first_line_and_a_signal_stops_it(tmp_path, rng):
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    stack = tiny_stack(tmp_path / "w.npz", rng)
+    process = subprocess.Popen([sys.executable, "-m", "studio.cli", str(stack), "--no-browser",
+                                "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
+    try:
+        url = process.stdout.readline().strip()
+        assert url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(url, timeout=10) as page:
+            assert page.status == 200 and b"<html" in page.read().lower()
+    finally:
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=30)
+    assert process.returncode == 128 + signal.SIGTERM
+    assert "Traceback" not in err
