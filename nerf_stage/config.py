@@ -104,6 +104,10 @@ class TrainConfig:
     opacity_weight: float = 0.1
     """Weight of the L2 loss between the accumulated opacity and the images' alpha, while the
     density trains: it clears fog from space that few rays constrain."""
+    rgb_weight: float = 1.0
+    """Weight of the L2 loss of the colours through the weights (``weights @ basis``) against
+    the images, added to the weights' own loss while the output is weights (0: the weights'
+    loss alone)."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour behind the scene, RGB in [0, 1]."""
     seed: int = 0
@@ -119,6 +123,8 @@ class TrainConfig:
         self.backbone = _member(Backbone, self.backbone, "backbone")
         self.strategy = _member(Strategy, self.strategy, "strategy")
         self.background = tuple(float(c) for c in self.background)
+        if not (isinstance(self.rgb_weight, (int, float)) and 0 <= self.rgb_weight < math.inf):
+            raise InputError(f"rgb_weight must be a number >= 0, got {self.rgb_weight!r}")
         _at_least(self, 0, "pretrain_iters", "finetune_iters")
         _at_least(self, 1, "batch_rays", "head_width", "occupancy_voxels", "checkpoint_every")
         if self.pretrain_iters + self.finetune_iters == 0:
@@ -154,7 +160,7 @@ class TrainConfig:
         """
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected an object of config fields")
-        data = _nest_flat_fields(data)
+        data = {"rgb_weight": 0.0} | _nest_flat_fields(data)  # runs saved before it trained without
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(data) - set(known))
         if unknown:

@@ -151,6 +151,8 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
     else:
         loss = _weight_loss(run.field.kind, values, rays["weights"])
         rgb = values @ terms + (1 - acc[:, None]) * background
+        if run.config.rgb_weight:
+            loss = loss + run.config.rgb_weight * torch.mean((rgb - rays["rgb"]) ** 2)
     if acc.requires_grad:
         loss = loss + run.config.opacity_weight * torch.mean((acc - rays["alpha"]) ** 2)
     with torch.no_grad():
