@@ -19,6 +19,7 @@ from nerf_stage.rendering import OccupancyGrid, composite, scene_box, visual_hul
 from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
 from nerf_stage.trainer import train  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
+from palette_core.errors import InputError  # noqa: E402
 from palette_core.stack import read_stack  # noqa: E402
 
 from .helpers import expect_error  # noqa: E402
@@ -306,3 +307,12 @@ def test_render_checks_every_argument_first(cornell_run, tmp_path, capsys):
                         "--palette", str(tmp_path / "b" / "x.json"), "-o", str(out)],
                  "outputs collide", capsys)
     assert not out.exists()
+
+
+def test_runs_saved_before_the_rgb_loss_keep_training_without_it():
+    saved = TrainConfig().to_dict()
+    del saved["rgb_weight"]
+    assert TrainConfig.from_dict(saved).rgb_weight == 0.0
+    assert TrainConfig().rgb_weight == 1.0
+    with pytest.raises(InputError, match="rgb_weight"):
+        TrainConfig(rgb_weight=-1.0)
