@@ -268,37 +268,33 @@ class Studio:
         return self.target.export(self.export_path.value, palette, camera_pose(client.camera),
                                   view.intrinsics(), int(self.turntable_views.value), force)
 
-    def _write(self, client, write) -> None:
-        """Run ``write(force)``; if an output exists, ask the user before replacing it."""
+    def _write(self, client, write, force: bool = False) -> None:
+        """Run ``write(force) -> [paths]``; if an output exists, ask the user in a window
+        before running it again with ``force``."""
         self.say("writing ...")
         try:
-            written = write(False)
+            written = write(force)
         except OutputExists as exc:
-            self._confirm(client, str(exc).split(" (use")[0], write)
+            message = str(exc).split(" (use")[0]  # the CLI's hint does not apply here
+            self.say(f"{message}: replace?")
+            self._confirm(client, message, lambda: self._write(client, write, force=True))
             return
         except (InputError, OSError) as exc:
             self.say(f"**error:** {exc}")
             return
-        self._wrote(written)
+        more = f" and {len(written) - 1} more" if len(written) > 1 else ""
+        self.say(f"wrote `{written[0]}`{more}")
 
-    def _wrote(self, written) -> None:
-        count = len(written) if isinstance(written, list) else 1
-        where = self.export_path.value if isinstance(written, list) else self.palette_path.value
-        self.say(f"wrote {count} file{'s' * (count != 1)} to `{where}`")
-
-    def _confirm(self, client, message: str, write) -> None:
+    def _confirm(self, client, message: str, replace) -> None:
         with client.gui.add_modal("Replace?") as modal:
             client.gui.add_markdown(f"{message}. Replace it?")
             yes, no = client.gui.add_button("replace"), client.gui.add_button("cancel")
 
-            def replace(event) -> None:
+            def confirmed(event) -> None:
                 modal.close()
-                try:
-                    self._wrote(write(True))
-                except (InputError, OSError) as exc:
-                    self.say(f"**error:** {exc}")
+                replace()
 
-            yes.on_click(replace)
+            yes.on_click(confirmed)
             no.on_click(lambda event: modal.close())
 
 

@@ -7,6 +7,7 @@ redraws; the tests call them directly.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -47,8 +48,7 @@ class PaletteEditor:
         return True
 
     def set_colour(self, i: int, rgb) -> bool:
-        """Colour ``i`` becomes ``rgb`` (3,) in [0, 1] (or 0..255 ints with ``/ 255`` done
-        by the caller); False if it already was."""
+        """Colour ``i`` becomes ``rgb`` (3,) in [0, 1]; False if it already was."""
         if not 0 <= i < len(self.palette):
             raise InputError(f"colour {i} is not in a palette of {len(self.palette)}")
         palette = self.palette.copy()
@@ -79,12 +79,13 @@ class PaletteEditor:
     def can_undo(self) -> bool:
         return bool(self._history)
 
-    def save(self, path: str | os.PathLike, force: bool = False) -> None:
+    def save(self, path: str | os.PathLike, force: bool = False) -> list[Path]:
         """Write the palette as JSON (docs/formats.md), atomically; an existing file only
-        with ``force``."""
-        path = os.fspath(path)
-        if not path.endswith(".json"):
+        with ``force``. Returns the file written."""
+        path = Path(path)
+        if path.suffix != ".json":
             raise InputError(f"a palette file ends in .json, got {path}")
         check_writable([path], force)
         with atomic_outputs(force) as stage:
             write_palette_json(stage(path), self.palette)
+        return [path]

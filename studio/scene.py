@@ -36,6 +36,13 @@ class SceneTarget:
     run : Run
     path : Path
         The run folder (default exports go into it).
+
+    Attributes
+    ----------
+    bounds : (2, 3) float64
+        World corners of what the run found occupied (``OccupancyGrid.bounds``).
+    centre : (3,) float64
+        Their middle: where the camera looks and turntables turn.
     """
 
     mode = "scene"
@@ -43,6 +50,8 @@ class SceneTarget:
     def __init__(self, run: Run, path: Path):
         self.run = run
         self.path = path
+        self.bounds = run.box.centre + run.box.scale * run.occupancy.bounds()
+        self.centre = self.bounds.mean(0)
         self._views: OrderedDict[tuple, WeightRender] = OrderedDict()
         self._lock = threading.Lock()  # one render at a time, whichever tab asks
 
@@ -63,16 +72,10 @@ class SceneTarget:
         """Vertical field of view of the training camera, radians."""
         return 2 * math.atan(0.5 * self.run.intrinsics.height / self.run.intrinsics.fy)
 
-    @property
-    def centre(self) -> np.ndarray:
-        """(3,) world centre of what the run found occupied."""
-        return self.run.box.centre + self.run.box.scale * self.run.occupancy.bounds().mean(0)
-
     def home_pose(self) -> np.ndarray:
         """(4, 4) a camera in front of the scene (+z), 20 degrees up, framing all that the run
         found occupied."""
-        low, high = self.run.box.scale * self.run.occupancy.bounds()
-        distance = 0.6 * np.linalg.norm(high - low) / math.sin(0.5 * self.fov_y)
+        distance = 0.6 * np.linalg.norm(np.ptp(self.bounds, 0)) / math.sin(0.5 * self.fov_y)
         up = math.radians(20)
         return look_at(self.centre + distance * np.array([0, math.sin(up), math.cos(up)]),
                        self.centre)
