@@ -102,8 +102,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     rundir.mkdir(parents=True, exist_ok=True)
     config.save(rundir / CONFIG)
     optimisers = _optimisers(run)
-    for optimiser, saved_state in zip(optimisers, optimiser_states):
-        optimiser.load_state_dict(saved_state)
+    if resume:
+        _load_optimisers(optimisers, optimiser_states, rundir)
     terms = torch.as_tensor(run.terms, dtype=torch.float32, device=device)
     background = torch.as_tensor(config.background, dtype=torch.float32, device=device)
     bar = tqdm(range(start, config.total_iters), desc=f"train {config.backbone}",
@@ -119,6 +119,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             backbone = config.backbone_config
             if it >= backbone.warmup_iters and it % backbone.occupancy_every == 0:
                 run.occupancy.update(run.field, run.sampling.step, generator)
+        _decay_learning_rates(optimisers, config, it)
         batch = torch.randint(len(rays["origins"]), (config.batch_rays,), generator=generator,
                               device=device)
         run.field.train()
@@ -232,13 +233,44 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     fit.step(closure)
 
 
+def _decay_learning_rates(optimisers: list, config: TrainConfig, it: int) -> None:
+    """Set each parameter group's rate to its initial rate x ``config.lr_decay`` ^ (the
+    fraction of the stage done): exponential decay over the RGB stage of ``two-stage``, its
+    weight stage, or the one stage of the other strategies (as DVGO and TensoRF decay)."""
+    two_stage = config.strategy == Strategy.TWO_STAGE
+    if two_stage and it >= config.pretrain_iters:
+        done, length = it - config.pretrain_iters, config.finetune_iters
+    else:
+        done, length = it, config.pretrain_iters if two_stage else config.total_iters
+    scale = config.lr_decay ** (done / length)
+    for optimiser in optimisers:
+        for group in optimiser.param_groups:
+            group["lr"] = group["initial_lr"] * scale
+
+
+def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
+    """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they differ (a run
+    of an older nerf-stage, whose grids had their own SparseAdam)."""
+    try:
+        if len(states) != len(optimisers):
+            raise ValueError
+        for optimiser, state in zip(optimisers, states):
+            optimiser.load_state_dict(state)
+    except (ValueError, KeyError, TypeError):
+        raise InputError(f"{rundir} was trained with other optimisers (an older nerf-stage); "
+                         "start afresh with --force") from None
+
+
 def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
-    """SparseAdam for voxel grids, Adam for networks, over the parameters being trained."""
+    """One Adam over the parameters being trained: voxel grids at the backbone's ``lr``,
+    networks at its ``network_lr`` (fused: one pass over each tensor per step)."""
     trained = [p for p in run.field.parameters() if p.requires_grad]
-    sparse = [p for p in run.field.sparse_parameters() if p.requires_grad]
-    dense = [p for p in trained if all(p is not s for s in sparse)]
+    grids = [p for p in run.field.grid_parameters() if p.requires_grad]
+    networks = [p for p in trained if all(p is not g for g in grids)]
     backbone = run.config.backbone_config
-    optimisers = [torch.optim.Adam(dense, lr=backbone.network_lr)]
-    if sparse:
-        optimisers.append(torch.optim.SparseAdam(sparse, lr=backbone.lr))
-    return optimisers
+    groups = [{"params": networks, "initial_lr": backbone.network_lr}]
+    if grids:
+        groups.append({"params": grids, "initial_lr": backbone.lr})
+    for group in groups:
+        group["lr"] = group["initial_lr"]
+    return [torch.optim.Adam(groups, fused=True)]

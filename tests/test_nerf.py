@@ -88,6 +88,16 @@ def test_output_activations(make, kind, rng):
         assert torch.allclose(values.sum(-1), torch.ones(50), atol=1e-6)
 
 
+def test_grid_interpolation_has_the_gradient_of_a_weighted_gather(rng):
+    field = GridField([1, 1, 0.5], 5**3, 3, 8).double()
+    table = field.feature_grid.weight
+    x = torch.as_tensor(rng.uniform(-1, 1, (40, 3)))
+    index, weight = field._corners(x)
+    assert torch.autograd.gradcheck(lambda t: field._interpolate(t, index, weight), (table,))
+    expected = (table[index] * weight[..., None]).sum(1)
+    assert torch.allclose(field._interpolate(table, index, weight), expected)
+
+
 def test_visual_hull_keeps_the_objects(still_life):
     data = load_dataset(still_life)
     train_ids = data.indices("train")
@@ -190,6 +200,17 @@ def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch):
     for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()):
         assert torch.equal(a, b)
     assert [e["loss"] for e in whole.record.log] == [e["loss"] for e in resumed.record.log]
+
+
+def test_a_run_with_other_optimisers_does_not_resume(cornell, tmp_path):
+    config = tiny_config(pretrain_iters=1, finetune_iters=1)
+    trained(cornell, config, tmp_path / "run")
+    path = tmp_path / "run" / CHECKPOINT
+    state = torch.load(path, weights_only=True)
+    state["optimisers"].append(state["optimisers"][0])  # grids had a SparseAdam of their own
+    torch.save(state, path)
+    with pytest.raises(InputError, match="other optimisers"):
+        trained(cornell, config, tmp_path / "run", resume=True)
 
 
 # --- command line ----------------------------------------------------------------------------
@@ -309,10 +330,23 @@ def test_render_checks_every_argument_first(cornell_run, tmp_path, capsys):
     assert not out.exists()
 
 
-def test_runs_saved_before_the_rgb_loss_keep_training_without_it():
+@pytest.mark.parametrize("added, before, now, bad", [("rgb_weight", 0.0, 1.0, -1.0),
+                                                    ("lr_decay", 1.0, 0.1, 0.0)])
+def test_runs_saved_before_a_setting_keep_training_as_they_did(added, before, now, bad):
     saved = TrainConfig().to_dict()
-    del saved["rgb_weight"]
-    assert TrainConfig.from_dict(saved).rgb_weight == 0.0
-    assert TrainConfig().rgb_weight == 1.0
-    with pytest.raises(InputError, match="rgb_weight"):
-        TrainConfig(rgb_weight=-1.0)
+    del saved[added]
+    assert getattr(TrainConfig.from_dict(saved), added) == before
+    assert getattr(TrainConfig(), added) == now
+    with pytest.raises(InputError, match=added):
+        TrainConfig(**{added: bad})
+
+
+def test_learning_rates_decay_over_each_stage():
+    config = tiny_config(pretrain_iters=4, finetune_iters=2, lr_decay=0.25)
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    optimiser = torch.optim.Adam([{"params": [parameter], "initial_lr": 2.0, "lr": 2.0}])
+    rates = []
+    for it in range(6):
+        trainer_module._decay_learning_rates([optimiser], config, it)
+        rates.append(optimiser.param_groups[0]["lr"])
+    assert np.allclose(rates, [2.0, 2 * 0.25**0.25, 1.0, 2 * 0.25**0.75, 2.0, 1.0])

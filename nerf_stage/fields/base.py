@@ -93,8 +93,8 @@ class Field(nn.Module, ABC):
     def sampling(self, config) -> RaySampling:
         """How rays are sampled for this field under a ``TrainConfig``."""
 
-    def sparse_parameters(self) -> list[nn.Parameter]:
-        """Parameters with sparse gradients (optimised by ``SparseAdam``); none by default."""
+    def grid_parameters(self) -> list[nn.Parameter]:
+        """Voxel grids, trained at the backbone's grid learning rate ``lr``; none by default."""
         return []
 
     def _init_output(self, kind: str, channels: int) -> None:
