@@ -94,9 +94,6 @@ class TrainConfig:
     target)."""
     finetune_iters: int = 300
     """F: weight iterations of ``two-stage`` with the density part frozen."""
-    lr_decay: float = 0.1
-    """Learning rates fall exponentially to this fraction of their value over each stage
-    (1: constant)."""
     batch_rays: int = 4096
     """Rays per iteration."""
     head_width: int = 128
@@ -128,8 +125,6 @@ class TrainConfig:
         self.background = tuple(float(c) for c in self.background)
         if not (isinstance(self.rgb_weight, (int, float)) and 0 <= self.rgb_weight < math.inf):
             raise InputError(f"rgb_weight must be a number >= 0, got {self.rgb_weight!r}")
-        if not (isinstance(self.lr_decay, (int, float)) and 0 < self.lr_decay <= 1):
-            raise InputError(f"lr_decay must be a number in (0, 1], got {self.lr_decay!r}")
         _at_least(self, 0, "pretrain_iters", "finetune_iters")
         _at_least(self, 1, "batch_rays", "head_width", "occupancy_voxels", "checkpoint_every")
         if self.pretrain_iters + self.finetune_iters == 0:
@@ -219,7 +214,7 @@ class TrainConfig:
 _NESTED = {"grid": GridConfig, "mlp": MLPConfig}
 
 #: Fields added since version 0.1.0, with the values that runs saved before them trained with.
-_ADDED_FIELDS = {"rgb_weight": 0.0, "lr_decay": 1.0}
+_ADDED_FIELDS = {"rgb_weight": 0.0}
 
 #: Flat field names of runs saved by version 0.1.0, and where they live now.
 _FLAT_FIELDS = {

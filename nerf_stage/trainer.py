@@ -119,7 +119,6 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             backbone = config.backbone_config
             if it >= backbone.warmup_iters and it % backbone.occupancy_every == 0:
                 run.occupancy.update(run.field, run.sampling.step, generator)
-        _decay_learning_rates(optimisers, config, it)
         batch = torch.randint(len(rays["origins"]), (config.batch_rays,), generator=generator,
                               device=device)
         run.field.train()
@@ -233,21 +232,6 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     fit.step(closure)
 
 
-def _decay_learning_rates(optimisers: list, config: TrainConfig, it: int) -> None:
-    """Set each parameter group's rate to its initial rate x ``config.lr_decay`` ^ (the
-    fraction of the stage done): exponential decay over the RGB stage of ``two-stage``, its
-    weight stage, or the one stage of the other strategies (as DVGO and TensoRF decay)."""
-    two_stage = config.strategy == Strategy.TWO_STAGE
-    if two_stage and it >= config.pretrain_iters:
-        done, length = it - config.pretrain_iters, config.finetune_iters
-    else:
-        done, length = it, config.pretrain_iters if two_stage else config.total_iters
-    scale = config.lr_decay ** (done / length)
-    for optimiser in optimisers:
-        for group in optimiser.param_groups:
-            group["lr"] = group["initial_lr"] * scale
-
-
 def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
     """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they differ (a run
     of an older nerf-stage, whose grids had their own SparseAdam)."""
@@ -268,9 +252,7 @@ def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
     grids = [p for p in run.field.grid_parameters() if p.requires_grad]
     networks = [p for p in trained if all(p is not g for g in grids)]
     backbone = run.config.backbone_config
-    groups = [{"params": networks, "initial_lr": backbone.network_lr}]
+    groups = [{"params": networks, "lr": backbone.network_lr}]
     if grids:
-        groups.append({"params": grids, "initial_lr": backbone.lr})
-    for group in groups:
-        group["lr"] = group["initial_lr"]
+        groups.append({"params": grids, "lr": backbone.lr})
     return [torch.optim.Adam(groups, fused=True)]
