@@ -49,7 +49,9 @@ class WeightRender:
     order : int
     background : (3,) float64
     source : dict
-        Run directory, checkpoint iteration and views: what the render came from.
+        Run directory, checkpoint iteration, when its training ended (the log's last
+        ``seconds``, so that a run trained again in the same folder is rendered again)
+        and views: what the render came from.
     """
 
     weights: np.ndarray
@@ -192,8 +194,9 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
             raise InputError(f"two palette files are named {label}.json: their outputs collide")
         palettes[label] = read_palette_json(path, k=len(run.palette))
     views = f"orbit:{orbit}" if orbit is not None else split
+    log = run.record.log
     source = {"run": str(Path(rundir).resolve()), "iteration": run.record.iteration,
-              "views": views}
+              "trained_seconds": log[-1]["seconds"] if log else 0.0, "views": views}
     out = Path(out)
     cache = out / RENDER_FILE
     render = read_render(cache) if cache.is_file() else None

@@ -251,6 +251,19 @@ def test_train_render_recolour_eval(cornell_run, tmp_path, capsys):
     assert "RGB through the weights: PSNR" in printed and "re-simulated scene: PSNR" in printed
 
 
+def test_a_run_trained_again_is_rendered_again(cornell_run, tmp_path, capsys):
+    _, args = cornell_run
+    rundir, out = tmp_path / "run", tmp_path / "renders"
+    args = [*args[:args.index("-o") + 1], str(rundir), *args[args.index("-o") + 2:]]
+    assert main(args) == 0
+    assert main(["render", str(rundir), "-o", str(out)]) == 0
+    assert main(["render", str(rundir), "-o", str(out), "--force"]) == 0
+    assert "recoloured the saved weight render" in capsys.readouterr().out
+    assert main([*args, "--force"]) == 0  # same folder, same iterations, a new training
+    assert main(["render", str(rundir), "-o", str(out), "--force"]) == 0
+    assert "recoloured the saved weight render" not in capsys.readouterr().out
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cpu_and_cuda_agree(cornell, cornell_run, tmp_path):
     """The same checkpoint renders alike on both devices, and training runs on CUDA."""

@@ -117,11 +117,9 @@ class GridField(Field):
         return nn.functional.softplus(raw + GRID_DENSITY_SHIFT) * self.voxels_per_unit, features
 
     def head(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        features = h
         if self.direction_frequencies is not None:
-            features = torch.cat([features, positional_encoding(d, self.direction_frequencies)],
-                                 dim=-1)
-        return torch.relu(self.hidden(features))
+            h = torch.cat([h, positional_encoding(d, self.direction_frequencies)], dim=-1)
+        return torch.relu(self.hidden(h))
 
     def density_parameters(self) -> list[nn.Parameter]:
         return [self.density_grid.weight]
