@@ -236,9 +236,7 @@ def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
     """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they differ (a run
     of an older nerf-stage, whose grids had their own SparseAdam)."""
     try:
-        if len(states) != len(optimisers):
-            raise ValueError
-        for optimiser, state in zip(optimisers, states):
+        for optimiser, state in zip(optimisers, states, strict=True):
             optimiser.load_state_dict(state)
     except (ValueError, KeyError, TypeError):
         raise InputError(f"{rundir} was trained with other optimisers (an older nerf-stage); "
