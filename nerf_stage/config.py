@@ -123,16 +123,13 @@ class TrainConfig:
         self.backbone = _member(Backbone, self.backbone, "backbone")
         self.strategy = _member(Strategy, self.strategy, "strategy")
         self.background = tuple(float(c) for c in self.background)
-        if not (isinstance(self.rgb_weight, (int, float)) and 0 <= self.rgb_weight < math.inf):
-            raise InputError(f"rgb_weight must be a number >= 0, got {self.rgb_weight!r}")
+        _at_least_zero(self, "opacity_weight", "rgb_weight")
         _at_least(self, 0, "pretrain_iters", "finetune_iters")
         _at_least(self, 1, "batch_rays", "head_width", "occupancy_voxels", "checkpoint_every")
         if self.pretrain_iters + self.finetune_iters == 0:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
         if self.strategy == Strategy.TWO_STAGE and self.finetune_iters == 0:
             raise InputError("the two-stage strategy needs finetune_iters > 0")
-        if not 0 <= self.opacity_weight < math.inf:
-            raise InputError(f"opacity_weight must be >= 0, got {self.opacity_weight}")
         if len(self.background) != 3 or not all(0 <= c <= 1 for c in self.background):
             raise InputError(f"background must be three numbers in [0, 1], got {self.background}")
 
@@ -251,6 +248,13 @@ def _at_least(config, low: int, *names: str) -> None:
         value = getattr(config, name)
         if not isinstance(value, int) or value < low:
             raise InputError(f"{name} must be an integer >= {low}, got {value!r}")
+
+
+def _at_least_zero(config, *names: str) -> None:
+    for name in names:
+        value = getattr(config, name)
+        if not (isinstance(value, (int, float)) and 0 <= value < math.inf):
+            raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
 
 
 def _positive(config, *names: str) -> None:

@@ -19,9 +19,9 @@ GRID_DENSITY_SHIFT = -4.0  # softplus(-4) ~ 0.02 per voxel: below the occupancy 
 class _Trilinear(torch.autograd.Function):
     """(N, C) table, (P, 8) corner indices and weights -> (P, C) weighted sums of the rows.
 
-    The backward scatters into a channels-first buffer with ``index_add_``: on CPUs
-    1.5x faster than ``embedding``'s backward, which sorts the indices. Positions
-    get no gradient.
+    The backward scatters into a channels-first buffer with ``index_add_``: on 2 CPU
+    cores 1.5x faster, forward and backward, than ``embedding`` with the same gather.
+    Positions get no gradient.
     """
 
     @staticmethod
