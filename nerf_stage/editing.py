@@ -163,13 +163,16 @@ class EditedRenders:
 def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
                  palette_files: list[str] = (), templates: list[str] = (),
                  split: str = "test", orbit: int | None = None,
-                 force: bool = False, progress: bool = True) -> EditedRenders:
+                 force: bool = False, progress: bool = True,
+                 baked: int | None = None) -> EditedRenders:
     """Render a run's weights once into ``out/render.npz`` and recolour them.
 
     One folder per palette file (``out/<file stem>``), per harmonisation template
     (``out/harmonized-<template>``, fitted to the rendered weights), or the run's
     own palette (``out/original``) when neither is given; an orbit also gives
     ``out/<label>.gif``. A render of the same run and views in ``out`` is reused.
+    ``baked`` renders through the field baked at that factor (``Run.baked``: no network,
+    faster).
 
     Raises
     ------
@@ -196,7 +199,8 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     views = f"orbit:{orbit}" if orbit is not None else split
     log = run.record.log
     source = {"run": str(Path(rundir).resolve()), "iteration": run.record.iteration,
-              "trained_seconds": log[-1]["seconds"] if log else 0.0, "views": views}
+              "trained_seconds": log[-1]["seconds"] if log else 0.0, "views": views,
+              "baked": baked}
     out = Path(out)
     cache = out / RENDER_FILE
     render = read_render(cache) if cache.is_file() else None
@@ -213,7 +217,8 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     if not reused:
         dataset = load_dataset(run.record.dataset, run.config.background)
         names, poses = render_poses(run, dataset, split, orbit)
-        render = render_weights(run, names, poses, source, progress)
+        renderer = run if baked is None else run.baked(baked)
+        render = render_weights(renderer, names, poses, source, progress)
         with atomic_outputs(force) as stage:
             write_render(render, stage(cache))
     if templates:

@@ -173,6 +173,11 @@ class OccupancyGrid(nn.Module):
             high = (cells.max(0).values + 1) * size - extent
         return torch.stack([low, high]).double().numpy()
 
+    def dilated(self, margin: int) -> torch.Tensor:
+        """(X, Y, Z) bool: the cells within ``margin`` cells of an occupied one."""
+        return nn.functional.max_pool3d(self.occupied[None, None].float(), 2 * margin + 1, 1,
+                                        margin)[0, 0].bool()
+
     def lookup(self, x: torch.Tensor) -> torch.Tensor:
         """(P,) bool: points inside the box and in an occupied cell."""
         u = torch.floor((x + self.extent) / (2 * self.extent) * self.resolution).long()

@@ -8,7 +8,7 @@ A run folder holds ``config.json`` (the ``TrainConfig``) and ``checkpoint.pt``
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +99,10 @@ class Run:
     @property
     def sampling(self) -> RaySampling:
         return self.field.sampling(self.config)
+
+    def baked(self, factor: int = 2) -> Run:
+        """This run with its field baked for fast rendering (``Field.baked``)."""
+        return replace(self, field=self.field.baked(self.occupancy, factor))
 
     def render_rays(self, origins, directions, generator=None):
         """Normalised rays -> ((R, C) values, (R,) opacity)."""

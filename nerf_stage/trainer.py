@@ -34,6 +34,7 @@ from .config import Strategy, TrainConfig
 from .data import Dataset, join_weights
 from .evaluation import psnr_from_mse
 from .fields import RGB, make_field
+from .fields.base import tone_map
 from .rendering import OccupancyGrid, march_rays, scene_box
 from .run import (
     CHECKPOINT,
@@ -161,10 +162,10 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
 
 
 def _weight_loss(kind: str, values: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-    """L2 of (R, M) premultiplied weights; transport weights are tone-mapped by
-    w / (1 + w) first, so that emitters of radiance far above one do not drown the rest."""
+    """L2 of (R, M) premultiplied weights; transport weights are tone-mapped first
+    (``fields.base.tone_map``), so that emitters do not drown the rest."""
     if kind == Basis.TRANSPORT:
-        values, targets = values / (1 + values), targets / (1 + targets)
+        values, targets = tone_map(values), tone_map(targets)
     return torch.mean((values - targets) ** 2)
 
 

@@ -14,7 +14,9 @@ from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.config import GridConfig, MLPConfig, TrainConfig  # noqa: E402
 from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.editing import read_render  # noqa: E402
+from nerf_stage.evaluation import psnr  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
+from nerf_stage.fields.grid import _corners, _Trilinear  # noqa: E402
 from nerf_stage.rendering import OccupancyGrid, composite, scene_box, visual_hull  # noqa: E402
 from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
 from nerf_stage.trainer import train  # noqa: E402
@@ -92,10 +94,10 @@ def test_grid_interpolation_has_the_gradient_of_a_weighted_gather(rng):
     field = GridField([1, 1, 0.5], 5**3, 3, 8).double()
     table = field.feature_grid.weight
     x = torch.as_tensor(rng.uniform(-1, 1, (40, 3)))
-    index, weight = field._corners(x)
-    assert torch.autograd.gradcheck(lambda t: field._interpolate(t, index, weight), (table,))
+    index, weight = _corners(x, field.extent, field.resolution, field.CORNERS)
+    assert torch.autograd.gradcheck(lambda t: _Trilinear.apply(t, index, weight), (table,))
     expected = (table[index] * weight[..., None]).sum(1)
-    assert torch.allclose(field._interpolate(table, index, weight), expected)
+    assert torch.allclose(_Trilinear.apply(table, index, weight), expected)
 
 
 def test_visual_hull_keeps_the_objects(still_life):
@@ -149,6 +151,34 @@ def test_additive_renders_sum_to_the_opacity(still_life, tmp_path):
     weights, opacity = run.render(data.poses[data.indices("test")])
     assert weights.shape == (2, 16, 16, 4) and np.all(weights >= 0)
     assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
+
+
+@pytest.mark.parametrize("scene", ["cornell", "still_life"])
+def test_baked_renders_approach_the_network_as_the_bake_gets_finer(scene, request, tmp_path):
+    """Same opacity at every factor (the baked grid divides the field's cells), weights
+    non-negative (summing to the opacity for additive stacks), colours closer to the
+    network's the finer the bake."""
+    root = request.getfixturevalue(scene)
+    run = trained(root, tiny_config(pretrain_iters=20, finetune_iters=20), tmp_path / "run")
+    poses = load_dataset(root).poses[:2]
+    weights, opacity = run.render(poses)
+    agreement = []
+    for factor in (1, 2, 4):
+        baked_weights, baked_opacity = run.baked(factor).render(poses)
+        assert np.abs(baked_opacity - opacity).max() < 1e-5 and np.all(baked_weights >= 0)
+        if run.basis == "additive":
+            assert np.allclose(baked_weights.sum(-1), baked_opacity, atol=1e-5)
+        agreement.append(psnr(*(np.clip(w @ run.terms, 0, 1) for w in (baked_weights, weights))))
+    assert agreement == sorted(agreement) and agreement[-1] > 25
+
+
+def test_only_view_independent_grids_bake(cornell, tmp_path):
+    for backbone, grid in (("mlp", TINY["grid"]),
+                           ("grid", GridConfig(voxels=12**3, view_frequencies=2))):
+        run = trained(cornell, tiny_config(backbone=backbone, grid=grid, pretrain_iters=1,
+                                           finetune_iters=1), tmp_path / backbone)
+        with pytest.raises(InputError, match="cannot be baked"):
+            run.baked()
 
 
 def test_transport_loss_tone_maps_emitters():
@@ -249,6 +279,14 @@ def test_train_render_recolour_eval(cornell_run, tmp_path, capsys):
     assert main(["eval", str(rundir)]) == 0
     printed = capsys.readouterr().out
     assert "RGB through the weights: PSNR" in printed and "re-simulated scene: PSNR" in printed
+    expect_error(main, ["render", str(rundir), "--baked", "-o", str(out)],
+                 "holds another render", capsys)
+    assert main(["render", str(rundir), "--baked", "-o", str(tmp_path / "baked")]) == 0
+    assert read_render(tmp_path / "baked" / "render.npz").source["baked"] == 2
+    capsys.readouterr()
+    expect_error(main, ["eval", str(rundir), "--baked", "9"], "must be in [1, 4], got 9", capsys)
+    assert main(["eval", str(rundir), "--baked", "3"]) == 0
+    assert "RGB through the weights: PSNR" in capsys.readouterr().out
 
 
 def test_a_run_trained_again_is_rendered_again(cornell_run, tmp_path, capsys):

@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from palette_core.basis import Basis
+from palette_core.errors import InputError
 
 #: Output kind of a field that predicts colours rather than weights.
 RGB = "rgb"
@@ -35,6 +36,16 @@ ACTIVATIONS = {
     Basis.ADDITIVE: lambda raw: torch.softmax(raw, dim=-1),
     Basis.TRANSPORT: nn.functional.softplus,
 }
+
+
+def tone_map(weights: torch.Tensor) -> torch.Tensor:
+    """Transport weights w -> w / (1 + w) in [0, 1): emitters of radiance far above one
+    (30 in the Cornell box) stay comparable with the rest (``inverse_tone_map`` undoes it)."""
+    return weights / (1 + weights)
+
+
+def inverse_tone_map(mapped: torch.Tensor) -> torch.Tensor:
+    return mapped / (1 - mapped)
 
 
 @dataclass(frozen=True)
@@ -92,6 +103,13 @@ class Field(nn.Module, ABC):
     @abstractmethod
     def sampling(self, config) -> RaySampling:
         """How rays are sampled for this field under a ``TrainConfig``."""
+
+    def baked(self, occupancy, factor: int = 2) -> nn.Module:
+        """A copy for fast rendering whose colour part is a table look-up, ``factor`` times
+        finer than the field's grid, where ``occupancy`` (``rendering.OccupancyGrid``) is
+        occupied (``grid.BakedGrid``); InputError for backbones that cannot be baked."""
+        raise InputError(f"a {type(self).__name__} cannot be baked (only the grid backbone with "
+                         "a view-independent head can)")
 
     def grid_parameters(self) -> list[nn.Parameter]:
         """Voxel grids, trained at the backbone's grid learning rate ``lr``; none by default."""

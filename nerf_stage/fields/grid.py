@@ -11,9 +11,34 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .base import RGB, Field, RaySampling, positional_encoding
+from palette_core.basis import Basis
+from palette_core.errors import InputError
 
+from .base import RGB, Field, RaySampling, inverse_tone_map, positional_encoding, tone_map
+
+MAX_BAKE_FACTOR = 4  # a baked table grows with the factor's cube
 GRID_DENSITY_SHIFT = -4.0  # softplus(-4) ~ 0.02 per voxel: below the occupancy threshold
+
+
+def _grid_density(raw: torch.Tensor, voxels_per_unit: float) -> torch.Tensor:
+    """Interpolated raw grid values -> densities per unit length (activated after
+    interpolation, so that a surface can sit inside a voxel)."""
+    return nn.functional.softplus(raw + GRID_DENSITY_SHIFT) * voxels_per_unit
+
+
+def _corners(x: torch.Tensor, extent: torch.Tensor, resolution: torch.Tensor,
+             offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Trilinear interpolation of (P, 3) positions in the box [-extent, extent] on a grid of
+    ``resolution`` vertices: (P, 8) flat vertex indices and (P, 8) weights; ``offsets`` are
+    the (8, 3) corners of a cell."""
+    u = (x + extent) / (2 * extent) * (resolution - 1)
+    u = torch.minimum(torch.clamp(u, min=0), (resolution - 1).to(u.dtype))
+    base = torch.minimum(u.floor().long(), resolution - 2)
+    frac = (u - base)[:, None]  # (P, 1, 3)
+    ijk = base[:, None] + offsets  # (P, 8, 3)
+    index = (ijk[..., 0] * resolution[1] + ijk[..., 1]) * resolution[2] + ijk[..., 2]
+    weight = torch.where(offsets.bool(), frac, 1 - frac).prod(-1)
+    return index, weight
 
 
 class _Trilinear(torch.autograd.Function):
@@ -93,28 +118,16 @@ class GridField(Field):
         self.hidden = nn.Linear(features + n_direction, head_width)
         self._init_output(kind, channels)
 
-    def _corners(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Trilinear interpolation: (P, 8) flat voxel indices and (P, 8) weights."""
-        res = self.resolution
-        u = (x + self.extent) / (2 * self.extent) * (res - 1)
-        u = torch.minimum(torch.clamp(u, min=0), (res - 1).to(u.dtype))
-        base = torch.minimum(u.floor().long(), res - 2)
-        frac = (u - base)[:, None]  # (P, 1, 3)
-        ijk = base[:, None] + self.CORNERS  # (P, 8, 3)
-        index = (ijk[..., 0] * res[1] + ijk[..., 1]) * res[2] + ijk[..., 2]
-        weight = torch.where(self.CORNERS.bool(), frac, 1 - frac).prod(-1)
-        return index, weight
-
-    @staticmethod
-    def _interpolate(table: torch.Tensor, index: torch.Tensor, weight: torch.Tensor):
-        return _Trilinear.apply(table, index, weight)  # (P, C)
-
     def density(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Densities, and as ``h`` the (P, features) colour features read at the same corners."""
-        index, weight = self._corners(x)
-        raw = self._interpolate(self.density_grid.weight, index, weight)[:, 0]
-        features = self._interpolate(self.feature_grid.weight, index, weight)
-        return nn.functional.softplus(raw + GRID_DENSITY_SHIFT) * self.voxels_per_unit, features
+        raw, features = self.read(x)
+        return _grid_density(raw, self.voxels_per_unit), features
+
+    def read(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(P,) raw density and (P, features) colour features, trilinear at (P, 3) positions."""
+        index, weight = _corners(x, self.extent, self.resolution, self.CORNERS)
+        raw = _Trilinear.apply(self.density_grid.weight, index, weight)[:, 0]
+        return raw, _Trilinear.apply(self.feature_grid.weight, index, weight)
 
     def head(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         if self.direction_frequencies is not None:
@@ -133,8 +146,75 @@ class GridField(Field):
     def sampling(self, config) -> RaySampling:
         return RaySampling(step=config.grid.step_voxels / self.voxels_per_unit)
 
+    @torch.no_grad()
+    def baked(self, occupancy, factor: int = 2) -> BakedGrid:
+        if self.direction_frequencies is not None:
+            raise InputError("a grid run with a view-dependent head (view_frequencies) "
+                             "cannot be baked")
+        if not 1 <= factor <= MAX_BAKE_FACTOR:
+            raise InputError(f"the bake factor must be in [1, {MAX_BAKE_FACTOR}], got {factor}")
+        return BakedGrid(self, occupancy, factor)
+
     @classmethod
     def from_config(cls, config, extent, kind: str, channels: int) -> GridField:
         grid = config.grid
         return cls(extent, grid.voxels, grid.features, config.head_width, kind, channels,
                    grid.view_frequencies)
+
+
+class BakedGrid(nn.Module):
+    """A ``GridField`` with its colour part evaluated once, at the vertices of a grid
+    ``factor`` times as fine, near the occupied cells.
+
+    Rendering reads density and the C outputs from one (V, 1 + C) table at the
+    eight corners of a sample and runs no network. The finer grid reproduces the
+    field's trilinear density exactly (its vertices divide the field's cells) and
+    interpolates the non-linear colour part ``factor`` times more finely (its error
+    falls with ``factor``, its memory grows with the cube). Outputs
+    are interpolated after their activation, so baked additive weights still sum to
+    one; transport weights are interpolated tone-mapped (``base.tone_map``), so that
+    a lamp's radiance does not bleed into its neighbours. Only vertices within reach of an
+    occupied cell are kept (``slot`` maps the fine grid's vertices to table rows).
+    Has the ``density`` / ``colour`` / ``sampling`` of a field, nothing to train.
+    """
+
+    def __init__(self, field: GridField, occupancy, factor: int = 2):
+        super().__init__()
+        self.kind = field.kind
+        self.tone_mapped = field.kind == Basis.TRANSPORT
+        fine = factor * (field.resolution - 1) + 1
+        cell = 2 * field.extent / (fine - 1)
+        margin = int(torch.ceil((cell * occupancy.resolution / (2 * occupancy.extent)).max()))
+        near = occupancy.dilated(margin)
+        for axis, (n, cells) in enumerate(zip(fine.tolist(), occupancy.resolution.tolist())):
+            cell_of_vertex = torch.arange(n, device=fine.device) * cells // (n - 1)
+            near = near.index_select(axis, cell_of_vertex.clamp(max=cells - 1))
+        ijk = torch.nonzero(near)  # (V, 3) fine vertices within reach of an occupied cell
+        rows = []
+        for chunk in ijk.split(1 << 16):
+            raw, features = field.read(-field.extent + chunk * cell)
+            outputs = field.colour(features, None)
+            if self.tone_mapped:
+                outputs = tone_map(outputs)
+            rows.append(torch.cat([raw[:, None], outputs], 1))
+        empty = torch.zeros(1, 1 + field.output.out_features, device=fine.device)
+        empty[0, 0] = -GRID_DENSITY_SHIFT - 30  # never read: empty space
+        self.register_buffer("table", torch.cat([*rows, empty]))  # (V + 1, 1 + C)
+        slot = torch.full(near.shape, len(ijk), dtype=torch.int64, device=fine.device)
+        slot[tuple(ijk.t())] = torch.arange(len(ijk), device=fine.device)
+        self.register_buffer("slot", slot.flatten())
+        self.register_buffer("extent", field.extent)
+        self.register_buffer("resolution", fine)
+        self.register_buffer("CORNERS", field.CORNERS)
+        self.voxels_per_unit = field.voxels_per_unit
+
+    def density(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Densities and, as ``h``, the (P, C) outputs read at the same corners."""
+        index, weight = _corners(x, self.extent, self.resolution, self.CORNERS)
+        both = _Trilinear.apply(self.table, self.slot[index], weight)
+        return _grid_density(both[:, 0], self.voxels_per_unit), both[:, 1:]
+
+    def colour(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        return inverse_tone_map(h) if self.tone_mapped else h
+
+    sampling = GridField.sampling
