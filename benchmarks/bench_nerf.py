@@ -14,6 +14,8 @@ order-2 transport weights. Then, on the test views:
    scene re-simulated with it, and recolouring against rendering time.
 6. PSNR against training time: the training batches' PSNR over the seconds of
    each run, with the test PSNR at the end (figure ``nerf_psnr_time.png``).
+7. Baked rendering (``render --baked FACTOR``) against the network's, per scene
+   (``two-stage``): baking time, seconds and frames per second, test PSNR.
 
     python benchmarks/bench_nerf.py [--out benchmarks/out/nerf] [--iters P F] [--quick]
 
@@ -44,6 +46,7 @@ from palette_core.cli.decompose import main as decompose
 from palette_core.stack import read_stack
 
 SCENES = ("still-life", "cornell-box")
+BAKE_FACTORS = (2, 3)
 
 
 def prepare(scene: str, data: Path) -> tuple[Path, Path]:
@@ -79,6 +82,25 @@ def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: P
     print(f"  {name}: PSNR {scores['reconstruction']['psnr']:.2f} dB in {scores['seconds']:.0f} s",
           flush=True)
     return scores
+
+
+def baked_table(scene: str, network: dict, rundir: Path, root: Path) -> None:
+    """The network's render against the run baked at each of ``BAKE_FACTORS``."""
+    run = load_run(rundir)
+    dataset = load_dataset(root, run.config.background)
+    rows = [["network", "", network["seconds_per_view"], 1 / network["seconds_per_view"],
+             *rec(network), 0.0]]
+    for factor in BAKE_FACTORS:
+        start = time.perf_counter()
+        baked = run.baked(factor)
+        seconds = time.perf_counter() - start
+        s = evaluate(baked, dataset, progress=False)
+        rows.append([f"baked x{factor}", seconds, s["seconds_per_view"],
+                     1 / s["seconds_per_view"], *rec(s), rec(s)[0] - rec(network)[0]])
+    size = f"{dataset.intrinsics.width}x{dataset.intrinsics.height}"
+    table(f"{scene}: baked rendering against the network (two-stage, {size} views)",
+          ["render", "bake s", "s / frame", "frames / s", "test PSNR", "test SSIM",
+           "PSNR - network"], rows)
 
 
 def table(title: str, header: list[str], rows: list[list]) -> None:
@@ -179,6 +201,9 @@ def main() -> None:
               [[s["edit"]["psnr"], s["edit"]["ssim"], s["seconds_per_view"],
                 s["recolour_seconds_per_view"],
                 f"{s['seconds_per_view'] / s['recolour_seconds_per_view']:.0f}x"]])
+    for scene, runs in results.items():
+        baked_table(scene, runs["two-stage"], args.out / "runs" / scene / "two-stage",
+                    args.out / "data" / scene)
     args.out.mkdir(parents=True, exist_ok=True)
     plot(results, args.out / "nerf_psnr_time.png")
     (args.out / "results.json").write_text(json.dumps(

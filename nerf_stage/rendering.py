@@ -227,6 +227,8 @@ class Samples:
     weight : (P,)
         Compositing weight T_i alpha_i.
     transmittance : (P,)
+    optical : (P,)
+        Optical thickness sigma x step of each sample's step.
     opacity : (R,)
         Accumulated opacity of each ray.
     """
@@ -235,6 +237,7 @@ class Samples:
     h: torch.Tensor
     weight: torch.Tensor
     transmittance: torch.Tensor
+    optical: torch.Tensor
     opacity: torch.Tensor
 
     def visible(self) -> Samples:
@@ -242,7 +245,7 @@ class Samples:
         part)."""
         keep = self.transmittance.detach() > TERMINATION
         return Samples(self.ray[keep], self.h[keep], self.weight[keep],
-                       self.transmittance[keep], self.opacity)
+                       self.transmittance[keep], self.optical[keep], self.opacity)
 
     def composite(self, values: torch.Tensor) -> torch.Tensor:
         """(P, C) per-sample values -> (R, C) composited along the rays."""
@@ -283,12 +286,13 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     sigma_packed, h = field.density(points[ray, sample])
     sigma = torch.zeros_like(t).index_put((ray, sample), sigma_packed)
     weights, transmittance = composite(sigma, deltas[:, None].expand_as(t))  # (R, S)
-    return Samples(ray, h, weights[ray, sample], transmittance[ray, sample], weights.sum(1))
+    return Samples(ray, h, weights[ray, sample], transmittance[ray, sample],
+                   sigma_packed * deltas[ray], weights.sum(1))
 
 
 def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
                 directions: torch.Tensor, sampling: RaySampling,
-                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                generator: torch.Generator | None = None) -> tuple[torch.Tensor, Samples]:
     """Composite the field's outputs along rays (``march_rays``); samples behind
     ``TERMINATION`` transmittance skip the colour part (``Samples.visible``).
 
@@ -296,9 +300,11 @@ def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
     -------
     values : (R, C)
         Composited outputs, premultiplied by opacity.
-    acc : (R,)
-        Accumulated opacity.
+    samples : Samples
+        All the rays' samples in occupied cells; ``samples.opacity`` (R,) is the
+        accumulated opacity.
     """
-    samples = march_rays(field, occupancy, origins, directions, sampling, generator).visible()
-    values = field.colour(samples.h, directions[samples.ray])  # (P, C)
-    return samples.composite(values), samples.opacity
+    samples = march_rays(field, occupancy, origins, directions, sampling, generator)
+    visible = samples.visible()
+    values = field.colour(visible.h, directions[visible.ray])  # (P, C)
+    return visible.composite(values), samples

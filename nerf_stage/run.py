@@ -105,7 +105,7 @@ class Run:
         return replace(self, field=self.field.baked(self.occupancy, factor))
 
     def render_rays(self, origins, directions, generator=None):
-        """Normalised rays -> ((R, C) values, (R,) opacity)."""
+        """Normalised rays -> (R, C) values and their ``rendering.Samples`` (``render_rays``)."""
         return render_rays(self.field, self.occupancy, origins, directions, self.sampling,
                            generator)
 
@@ -130,7 +130,7 @@ class Run:
                                                               directions.split(RENDER_CHUNK))]
             shape = (intrinsics.height, intrinsics.width)
             values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).cpu().numpy())
-            accs.append(torch.cat([a for _, a in outputs]).reshape(shape).cpu().numpy())
+            accs.append(torch.cat([s.opacity for _, s in outputs]).reshape(shape).cpu().numpy())
         return np.stack(values), np.stack(accs)
 
 

@@ -49,6 +49,8 @@ from .run import (
     save_checkpoint,
 )
 
+SPARSITY_SCALE = 0.01  # optical thickness of a step where the sparsity prior bends
+
 
 def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
           resume: bool = False, force: bool = False, weights_path: str = "",
@@ -143,9 +145,11 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
     """Loss of one batch of rays, and the PSNR of its colours (through the weights).
 
     L2 on RGB while the output is RGB, else ``_weight_loss``; plus, while the density
-    trains, ``opacity_weight`` x L2 of the opacity against alpha.
+    trains, ``opacity_weight`` x L2 of the opacity against alpha and ``sparsity_weight``
+    x ``_sparsity``.
     """
-    values, acc = run.render_rays(rays["origins"], rays["directions"], generator)
+    values, samples = run.render_rays(rays["origins"], rays["directions"], generator)
+    acc = samples.opacity
     if run.field.kind == RGB:
         rgb = values + (1 - acc[:, None]) * background
         loss = torch.mean((rgb - rays["rgb"]) ** 2)
@@ -156,9 +160,19 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
             loss = loss + run.config.rgb_weight * torch.mean((rgb - rays["rgb"]) ** 2)
     if acc.requires_grad:
         loss = loss + run.config.opacity_weight * torch.mean((acc - rays["alpha"]) ** 2)
+        if run.config.sparsity_weight:
+            loss = loss + run.config.sparsity_weight * _sparsity(samples.optical)
     with torch.no_grad():
         mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"]) ** 2))
     return loss, psnr_from_mse(max(mse, 1e-10))
+
+
+def _sparsity(optical: torch.Tensor) -> torch.Tensor:
+    """Cauchy sparsity prior: mean of log(1 + (tau / SPARSITY_SCALE)^2) over the (P,) optical
+    thicknesses tau of the samples (the sparsity prior of Plenoxels, Fridovich-Keil et al.
+    CVPR 2022, on thickness rather than density): steep for thin fog, flat for opaque
+    surfaces; 0 for no samples."""
+    return torch.log1p((optical / SPARSITY_SCALE) ** 2).sum() / max(1, len(optical))
 
 
 def _weight_loss(kind: str, values: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:

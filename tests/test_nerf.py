@@ -381,10 +381,19 @@ def test_render_checks_every_argument_first(cornell_run, tmp_path, capsys):
     assert not out.exists()
 
 
-def test_runs_saved_before_the_rgb_loss_keep_training_without_it():
+@pytest.mark.parametrize("loss", ["rgb_weight", "sparsity_weight"])
+def test_runs_saved_before_a_loss_keep_training_without_it(loss):
     saved = TrainConfig().to_dict()
-    del saved["rgb_weight"]
-    assert TrainConfig.from_dict(saved).rgb_weight == 0.0
-    assert TrainConfig().rgb_weight == 1.0
-    with pytest.raises(InputError, match="rgb_weight"):
-        TrainConfig(rgb_weight=-1.0)
+    del saved[loss]
+    assert getattr(TrainConfig.from_dict(saved), loss) == 0.0
+    assert getattr(TrainConfig(), loss) > 0
+    with pytest.raises(InputError, match=loss):
+        TrainConfig(**{loss: -1.0})
+
+
+def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
+    optical = torch.tensor([0.0, 0.005, 0.01, 3.0, 30.0], requires_grad=True)
+    trainer_module._sparsity(optical).backward()
+    fog, surface = optical.grad[1:3], optical.grad[3:]
+    assert optical.grad[0] == 0 and fog.min() > 20 * surface.max() > 0
+    assert trainer_module._sparsity(torch.zeros(0)) == 0

@@ -30,15 +30,16 @@ def _corners(x: torch.Tensor, extent: torch.Tensor, resolution: torch.Tensor,
              offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Trilinear interpolation of (P, 3) positions in the box [-extent, extent] on a grid of
     ``resolution`` vertices: (P, 8) flat vertex indices and (P, 8) weights; ``offsets`` are
-    the (8, 3) corners of a cell."""
+    the (8, 3) corners of a cell, in the order of the weights' outer product."""
     u = (x + extent) / (2 * extent) * (resolution - 1)
     u = torch.minimum(torch.clamp(u, min=0), (resolution - 1).to(u.dtype))
     base = torch.minimum(u.floor().long(), resolution - 2)
-    frac = (u - base)[:, None]  # (P, 1, 3)
-    ijk = base[:, None] + offsets  # (P, 8, 3)
-    index = (ijk[..., 0] * resolution[1] + ijk[..., 1]) * resolution[2] + ijk[..., 2]
-    weight = torch.where(offsets.bool(), frac, 1 - frac).prod(-1)
-    return index, weight
+    frac = u - base
+    strides = torch.stack([resolution[1] * resolution[2], resolution[2], resolution[2] ** 0])
+    index = (base * strides).sum(-1, keepdim=True) + (offsets * strides).sum(-1)
+    w = torch.stack([1 - frac, frac], -1)  # (P, 3 axes, 2 ends)
+    weight = w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]
+    return index, weight.reshape(-1, 8)
 
 
 class _Trilinear(torch.autograd.Function):
