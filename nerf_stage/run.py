@@ -126,11 +126,12 @@ class Run:
         values, accs = [], []
         for pose in tqdm(poses, desc="render", unit="view", disable=not progress):
             origins, directions = normalised_rays(pose, intrinsics, self.box, device)
-            outputs = [self.render_rays(o, d) for o, d in zip(origins.split(RENDER_CHUNK),
-                                                              directions.split(RENDER_CHUNK))]
+            chunks = (self.render_rays(o, d) for o, d in zip(origins.split(RENDER_CHUNK),
+                                                             directions.split(RENDER_CHUNK)))
+            outputs = [(v, samples.opacity) for v, samples in chunks]
             shape = (intrinsics.height, intrinsics.width)
             values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).cpu().numpy())
-            accs.append(torch.cat([s.opacity for _, s in outputs]).reshape(shape).cpu().numpy())
+            accs.append(torch.cat([a for _, a in outputs]).reshape(shape).cpu().numpy())
         return np.stack(values), np.stack(accs)
 
 

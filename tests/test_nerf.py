@@ -304,12 +304,13 @@ def test_a_run_trained_again_is_rendered_again(cornell_run, tmp_path, capsys):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cpu_and_cuda_agree(cornell, cornell_run, tmp_path):
-    """The same checkpoint renders alike on both devices, and training runs on CUDA."""
+    """The same checkpoint renders alike on both devices, through the network and baked,
+    and training runs on CUDA."""
     rundir, _ = cornell_run
     poses = load_dataset(cornell).poses[:2]
-    on_cpu = load_run(rundir, torch.device("cpu")).render(poses)
-    on_cuda = load_run(rundir, torch.device("cuda")).render(poses)
-    for a, b in zip(on_cpu, on_cuda):
+    on_cpu, on_cuda = (load_run(rundir, torch.device(d)) for d in ("cpu", "cuda"))
+    for a, b in zip(on_cpu.render(poses) + on_cpu.baked().render(poses),
+                    on_cuda.render(poses) + on_cuda.baked().render(poses)):
         assert np.abs(a - b).max() < 1e-4
     run = trained(cornell, tiny_config(), tmp_path / "cuda", device=torch.device("cuda"))
     weights, opacity = run.render(poses)

@@ -133,7 +133,7 @@ class GridField(Field):
     def head(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         if self.direction_frequencies is not None:
             h = torch.cat([h, positional_encoding(d, self.direction_frequencies)], dim=-1)
-        return torch.relu(self.hidden(h))
+        return nn.functional.relu(self.hidden(h), inplace=True)
 
     def density_parameters(self) -> list[nn.Parameter]:
         return [self.density_grid.weight]
