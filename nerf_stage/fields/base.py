@@ -45,6 +45,7 @@ def tone_map(weights: torch.Tensor) -> torch.Tensor:
 
 
 def inverse_tone_map(mapped: torch.Tensor) -> torch.Tensor:
+    """Tone-mapped weights in [0, 1) -> transport weights."""
     return mapped / (1 - mapped)
 
 

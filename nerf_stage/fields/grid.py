@@ -167,16 +167,16 @@ class BakedGrid(nn.Module):
     """A ``GridField`` with its colour part evaluated once, at the vertices of a grid
     ``factor`` times as fine, near the occupied cells.
 
-    Rendering reads density and the C outputs from one (V, 1 + C) table at the
-    eight corners of a sample and runs no network. The finer grid reproduces the
-    field's trilinear density exactly (its vertices divide the field's cells) and
-    interpolates the non-linear colour part ``factor`` times more finely (its error
-    falls with ``factor``, its memory grows with the cube). Outputs
-    are interpolated after their activation, so baked additive weights still sum to
-    one; transport weights are interpolated tone-mapped (``base.tone_map``), so that
-    a lamp's radiance does not bleed into its neighbours. Only vertices within reach of an
-    occupied cell are kept (``slot`` maps the fine grid's vertices to table rows).
-    Has the ``density`` / ``colour`` / ``sampling`` of a field, nothing to train.
+    Rendering reads density and the C outputs from one (V, 1 + C) table at the eight
+    corners of a sample and runs no network. The finer grid reproduces the field's
+    trilinear density exactly (its vertices divide the field's cells) and samples the
+    non-linear colour part ``factor`` times more finely (its error falls with
+    ``factor``, its memory grows with the cube). Outputs are interpolated after their
+    activation, so baked additive weights still sum to one; transport weights are
+    interpolated tone-mapped (``base.tone_map``), so that a lamp's radiance does not
+    bleed into its neighbours. Only vertices within reach of an occupied cell are kept
+    (``slot`` maps the fine grid's vertices to table rows). Has the ``density`` /
+    ``colour`` / ``sampling`` of a field, nothing to train.
     """
 
     def __init__(self, field: GridField, occupancy, factor: int = 2):
