@@ -179,7 +179,7 @@ class BakedGrid(nn.Module):
     ``colour`` / ``sampling`` of a field, nothing to train.
     """
 
-    def __init__(self, field: GridField, occupancy, factor: int = 2):
+    def __init__(self, field: GridField, occupancy, factor: int):
         super().__init__()
         self.kind = field.kind
         self.tone_mapped = field.kind == Basis.TRANSPORT
