@@ -104,7 +104,7 @@ class TrainConfig:
     opacity_weight: float = 0.1
     """Weight of the L2 loss between the accumulated opacity and the images' alpha, while the
     density trains: it clears fog from space that few rays constrain."""
-    sparsity_weight: float = 1e-4
+    sparsity_weight: float = 3e-4
     """Weight of the Cauchy sparsity prior on each sample's optical thickness, while the
     density trains: it clears thin fog (fewer samples a ray, faster training and rendering)."""
     rgb_weight: float = 1.0

@@ -15,6 +15,7 @@ T. Mueller et al. Instant neural graphics primitives. SIGGRAPH 2022 (occupancy g
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,7 @@ from .cameras import Intrinsics
 from .fields.base import RaySampling
 
 TERMINATION = 1e-4  # samples behind less transmittance skip the colour part
+SEGMENT = 32  # samples a ray marched at a time, between checks for termination (rendering)
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
 OCCUPIED_ALPHA = 0.03  # a cell is occupied when one step through it is this opaque
 
@@ -199,9 +201,11 @@ class OccupancyGrid(nn.Module):
         self.occupied = self.hull & (alpha >= threshold)
 
 
-def composite(sigma: torch.Tensor, deltas: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def composite(sigma: torch.Tensor, deltas: torch.Tensor,
+              depth: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Sample weights T_i alpha_i and transmittances T_i, both (R, S), from densities and
-    step lengths (NeRF eq. 3).
+    step lengths (NeRF eq. 3); ``depth`` (R,) is the optical depth in front of the first
+    sample (0 by default).
 
     Examples
     --------
@@ -209,8 +213,11 @@ def composite(sigma: torch.Tensor, deltas: torch.Tensor) -> tuple[torch.Tensor, 
     tensor([[0., 1., 0.]])
     """
     optical = sigma * deltas
-    transmittance = torch.exp(-torch.cumsum(torch.cat(
-        [torch.zeros_like(optical[:, :1]), optical[:, :-1]], dim=1), dim=1))
+    before = torch.cumsum(torch.cat([torch.zeros_like(optical[:, :1]), optical[:, :-1]], dim=1),
+                          dim=1)
+    if depth is not None:
+        before = before + depth[:, None]
+    transmittance = torch.exp(-before)
     return transmittance * (1 - torch.exp(-optical)), transmittance
 
 
@@ -260,7 +267,11 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
 
     Samples are spaced ``sampling.step`` apart from where a ray enters the box
     (grids), or ``sampling.count`` evenly across the box (MLPs); ``generator``
-    jitters them (training). Samples in empty cells skip the field.
+    jitters them (training). Samples in empty cells skip the field. Without
+    gradients (rendering), rays are marched ``SEGMENT`` samples at a time, and a
+    ray whose transmittance has fallen below ``TERMINATION`` is not marched further
+    (early ray termination); with gradients, in one pass (each pass of a grid
+    backbone costs a backward over its whole grids).
 
     Parameters
     ----------
@@ -274,20 +285,33 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     else:
         n_samples = max(1, int(torch.ceil((far - near).max() / sampling.step)))
         deltas = torch.full_like(near, sampling.step)
-    offsets = torch.arange(n_samples, device=near.device, dtype=near.dtype)
-    offsets = offsets + (0.5 if generator is None else
-                         torch.rand(len(near), 1, generator=generator, device=near.device))
-    t = near[:, None] + offsets * deltas[:, None]  # (R, S)
-    valid = t < far[:, None]
-    points = origins[:, None] + t[..., None] * directions[:, None]  # (R, S, 3)
-    valid[valid.clone()] = occupancy.lookup(points[valid])
-    ray, sample = torch.nonzero(valid, as_tuple=True)
-
-    sigma_packed, h = field.density(points[ray, sample])
-    sigma = torch.zeros_like(t).index_put((ray, sample), sigma_packed)
-    weights, transmittance = composite(sigma, deltas[:, None].expand_as(t))  # (R, S)
-    return Samples(ray, h, weights[ray, sample], transmittance[ray, sample],
-                   sigma_packed * deltas[ray], weights.sum(1))
+    jitter = (torch.full_like(near[:, None], 0.5) if generator is None else
+              torch.rand(len(near), 1, generator=generator, device=near.device))
+    depth = torch.zeros_like(near)  # optical depth marched so far
+    alive = torch.arange(len(near), device=near.device)
+    parts = []
+    segment = n_samples if torch.is_grad_enabled() else SEGMENT
+    for start in range(0, n_samples, segment):
+        offsets = torch.arange(start, min(start + segment, n_samples), device=near.device,
+                               dtype=near.dtype)
+        step = deltas[alive, None]
+        t = near[alive, None] + (offsets + jitter[alive]) * step  # (A, S)
+        valid = t < far[alive, None]
+        points = origins[alive, None] + t[..., None] * directions[alive, None]  # (A, S, 3)
+        valid[valid.clone()] = occupancy.lookup(points[valid])
+        row, sample = torch.nonzero(valid, as_tuple=True)
+        sigma_packed, h = field.density(points[row, sample])
+        sigma = torch.zeros_like(t).index_put((row, sample), sigma_packed)
+        weights, transmittance = composite(sigma, step.expand_as(t), depth[alive])
+        parts.append((alive[row], h, weights[row, sample], transmittance[row, sample],
+                      sigma_packed * step[row, 0]))
+        depth = depth.index_add(0, alive, (sigma * step).sum(1))
+        ends = near[alive] + (start + segment) * deltas[alive]
+        alive = alive[(depth[alive].detach() < -math.log(TERMINATION)) & (ends < far[alive])]
+        if len(alive) == 0:
+            break
+    ray, h, weight, transmittance, optical = (torch.cat(part) for part in zip(*parts))
+    return Samples(ray, h, weight, transmittance, optical, 1 - torch.exp(-depth))
 
 
 def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,

@@ -16,8 +16,15 @@ from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.editing import read_render  # noqa: E402
 from nerf_stage.evaluation import psnr  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
+from nerf_stage.fields.base import RaySampling  # noqa: E402
 from nerf_stage.fields.grid import _corners, _Trilinear  # noqa: E402
-from nerf_stage.rendering import OccupancyGrid, composite, scene_box, visual_hull  # noqa: E402
+from nerf_stage.rendering import (  # noqa: E402
+    OccupancyGrid,
+    composite,
+    render_rays,
+    scene_box,
+    visual_hull,
+)
 from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
 from nerf_stage.trainer import train  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
@@ -398,3 +405,29 @@ def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
     fog, surface = optical.grad[1:3], optical.grad[3:]
     assert optical.grad[0] == 0 and fog.min() > 20 * surface.max() > 0
     assert trainer_module._sparsity(torch.zeros(0)) == 0
+
+
+class _Sphere:
+    """An opaque ball of radius 0.5 that shows its positions as colours."""
+
+    def density(self, x):
+        return 1e3 * (x.norm(dim=-1) < 0.5).float(), x
+
+    def colour(self, h, d):
+        return h
+
+
+def test_rendering_stops_rays_at_surfaces_and_keeps_their_values():
+    occupancy = OccupancyGrid(torch.ones(3), 8**3)
+    origins = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.2, 0.1], [-3.0, 0.9, 0.0]])
+    directions = torch.tensor([[1.0, 0.0, 0.0]]).expand(3, 3)
+    sampling = RaySampling(step=0.01)
+    with torch.no_grad():
+        values, samples = render_rays(_Sphere(), occupancy, origins, directions, sampling)
+    unstopped, all_samples = render_rays(_Sphere(), occupancy, origins, directions, sampling)
+    assert torch.allclose(values, unstopped, atol=1e-4)
+    assert torch.allclose(samples.opacity, torch.tensor([1.0, 1.0, 0.0]), atol=1e-4)
+    marched, unstopped_marched = (torch.bincount(s.ray, minlength=3).tolist()
+                                  for s in (samples, all_samples))
+    assert unstopped_marched == [200] * 3  # 2 units of box at steps of 0.01
+    assert marched[0] < 100 and marched[1] < 100 and marched[2] == 200
