@@ -294,9 +294,9 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     for start in range(0, n_samples, segment):
         offsets = torch.arange(start, min(start + segment, n_samples), device=near.device,
                                dtype=near.dtype)
-        step = deltas[alive, None]
-        t = near[alive, None] + (offsets + jitter[alive]) * step  # (A, S)
-        valid = t < far[alive, None]
+        enter, step, leave = near[alive, None], deltas[alive, None], far[alive, None]
+        t = enter + (offsets + jitter[alive]) * step  # (A, S)
+        valid = t < leave
         points = origins[alive, None] + t[..., None] * directions[alive, None]  # (A, S, 3)
         valid[valid.clone()] = occupancy.lookup(points[valid])
         row, sample = torch.nonzero(valid, as_tuple=True)
@@ -306,8 +306,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         parts.append((alive[row], h, weights[row, sample], transmittance[row, sample],
                       sigma_packed * step[row, 0]))
         depth = depth.index_add(0, alive, (sigma * step).sum(1))
-        ends = near[alive] + (start + segment) * deltas[alive]
-        alive = alive[(depth[alive].detach() < -math.log(TERMINATION)) & (ends < far[alive])]
+        more = (enter + (start + segment) * step < leave)[:, 0]
+        alive = alive[(depth[alive].detach() < -math.log(TERMINATION)) & more]
         if len(alive) == 0:
             break
     ray, h, weight, transmittance, optical = (torch.cat(part) for part in zip(*parts))
