@@ -52,7 +52,10 @@ class GridConfig:
     network_lr: float = 1e-3
     """Adam learning rate of the head."""
     step_voxels: float = 1.0
-    """Ray-marching step, in voxels."""
+    """Ray-marching step of training, in voxels."""
+    render_step_voxels: float = 0.5
+    """Ray-marching step of renders, in voxels: finer than training's, so that surfaces that
+    training made thinner than a step render without bands."""
     occupancy_every: int = 16
     """Iterations between updates of the occupancy grid from the learned density."""
     warmup_iters: int = 64
@@ -63,7 +66,7 @@ class GridConfig:
         _at_least(self, 0, "warmup_iters")
         if self.view_frequencies is not None:
             _at_least(self, 0, "view_frequencies")
-        _positive(self, "lr", "network_lr", "step_voxels")
+        _positive(self, "lr", "network_lr", "step_voxels", "render_step_voxels")
 
 
 @dataclass
@@ -92,7 +95,7 @@ class TrainConfig:
     pretrain_iters: int = 800
     """P: RGB iterations of ``two-stage`` (``traditional`` and ``rgb`` train P + F on one
     target)."""
-    finetune_iters: int = 300
+    finetune_iters: int = 500
     """F: weight iterations of ``two-stage`` with the density part frozen."""
     batch_rays: int = 4096
     """Rays per iteration."""

@@ -98,16 +98,23 @@ class Run:
 
     @property
     def sampling(self) -> RaySampling:
+        """How training samples rays."""
         return self.field.sampling(self.config)
+
+    @property
+    def render_sampling(self) -> RaySampling:
+        """How renders sample rays (``GridConfig.render_step_voxels``)."""
+        return self.field.sampling(self.config, render=True)
 
     def baked(self, factor: int = 2) -> Run:
         """This run with its field baked for fast rendering (``Field.baked``)."""
         return replace(self, field=self.field.baked(self.occupancy, factor))
 
-    def render_rays(self, origins, directions, generator=None):
-        """Normalised rays -> (R, C) values and their ``rendering.Samples`` (``render_rays``)."""
-        return render_rays(self.field, self.occupancy, origins, directions, self.sampling,
-                           generator)
+    def render_rays(self, origins, directions, generator=None, render: bool = False):
+        """Normalised rays -> (R, C) values and their ``rendering.Samples`` (``render_rays``),
+        sampled as in training or, with ``render``, as renders are."""
+        sampling = self.render_sampling if render else self.sampling
+        return render_rays(self.field, self.occupancy, origins, directions, sampling, generator)
 
     @torch.no_grad()
     def render(self, poses: np.ndarray, progress: bool = False,
@@ -126,8 +133,8 @@ class Run:
         values, accs = [], []
         for pose in tqdm(poses, desc="render", unit="view", disable=not progress):
             origins, directions = normalised_rays(pose, intrinsics, self.box, device)
-            chunks = (self.render_rays(o, d) for o, d in zip(origins.split(RENDER_CHUNK),
-                                                             directions.split(RENDER_CHUNK)))
+            chunks = (self.render_rays(o, d, render=True)
+                      for o, d in zip(origins.split(RENDER_CHUNK), directions.split(RENDER_CHUNK)))
             outputs = [(v, samples.opacity) for v, samples in chunks]
             shape = (intrinsics.height, intrinsics.width)
             values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).cpu().numpy())

@@ -107,6 +107,12 @@ def test_grid_interpolation_has_the_gradient_of_a_weighted_gather(rng):
     assert torch.allclose(_Trilinear.apply(table, index, weight), expected)
 
 
+def test_renders_march_at_half_the_training_step():
+    field, config = GridField([1, 1, 1], 8**3, 3, 8), TrainConfig()
+    assert field.sampling(config, render=True).step == pytest.approx(
+        field.sampling(config).step / 2)
+
+
 def test_visual_hull_keeps_the_objects(still_life):
     data = load_dataset(still_life)
     train_ids = data.indices("train")

@@ -102,8 +102,9 @@ class Field(nn.Module, ABC):
         """The parameters of the colour part, the output layer last."""
 
     @abstractmethod
-    def sampling(self, config) -> RaySampling:
-        """How rays are sampled for this field under a ``TrainConfig``."""
+    def sampling(self, config, render: bool = False) -> RaySampling:
+        """How rays are sampled for this field under a ``TrainConfig``, in training or, with
+        ``render``, in renders."""
 
     def baked(self, occupancy, factor: int = 2) -> nn.Module:
         """A copy for fast rendering whose colour part is a table look-up, ``factor`` times

@@ -144,8 +144,10 @@ class GridField(Field):
     def grid_parameters(self) -> list[nn.Parameter]:
         return [self.density_grid.weight, self.feature_grid.weight]
 
-    def sampling(self, config) -> RaySampling:
-        return RaySampling(step=config.grid.step_voxels / self.voxels_per_unit)
+    def sampling(self, config, render: bool = False) -> RaySampling:
+        grid = config.grid
+        return RaySampling(step=(grid.render_step_voxels if render else grid.step_voxels)
+                           / self.voxels_per_unit)
 
     @torch.no_grad()
     def baked(self, occupancy, factor: int = 2) -> BakedGrid:

@@ -65,7 +65,7 @@ class MLPField(Field):
     def colour_parameters(self) -> list[nn.Parameter]:
         return [*self.view.parameters(), *self.output.parameters()]
 
-    def sampling(self, config) -> RaySampling:
+    def sampling(self, config, render: bool = False) -> RaySampling:
         return RaySampling(count=config.mlp.samples)
 
     @classmethod
