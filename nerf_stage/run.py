@@ -110,11 +110,11 @@ class Run:
         """This run with its field baked for fast rendering (``Field.baked``)."""
         return replace(self, field=self.field.baked(self.occupancy, factor))
 
-    def render_rays(self, origins, directions, generator=None, render: bool = False):
+    def render_rays(self, origins, directions, generator=None):
         """Normalised rays -> (R, C) values and their ``rendering.Samples`` (``render_rays``),
-        sampled as in training or, with ``render``, as renders are."""
-        sampling = self.render_sampling if render else self.sampling
-        return render_rays(self.field, self.occupancy, origins, directions, sampling, generator)
+        sampled as in training."""
+        return render_rays(self.field, self.occupancy, origins, directions, self.sampling,
+                           generator)
 
     @torch.no_grad()
     def render(self, poses: np.ndarray, progress: bool = False,
@@ -133,7 +133,7 @@ class Run:
         values, accs = [], []
         for pose in tqdm(poses, desc="render", unit="view", disable=not progress):
             origins, directions = normalised_rays(pose, intrinsics, self.box, device)
-            chunks = (self.render_rays(o, d, render=True)
+            chunks = (render_rays(self.field, self.occupancy, o, d, self.render_sampling)
                       for o, d in zip(origins.split(RENDER_CHUNK), directions.split(RENDER_CHUNK)))
             outputs = [(v, samples.opacity) for v, samples in chunks]
             shape = (intrinsics.height, intrinsics.width)
