@@ -92,7 +92,7 @@ class TrainConfig:
     strategy: Strategy = Strategy.TWO_STAGE
     """``two-stage`` (RGB pretrain, then weights), ``traditional`` (weights from scratch),
     or ``rgb`` (an RGB NeRF only, the baseline)."""
-    pretrain_iters: int = 800
+    pretrain_iters: int = 1400
     """P: RGB iterations of ``two-stage`` (``traditional`` and ``rgb`` train P + F on one
     target)."""
     finetune_iters: int = 500

@@ -11,6 +11,8 @@ References
 ----------
 B. Mildenhall et al. NeRF. ECCV 2020, eq. 3 (quadrature of the volume rendering integral).
 T. Mueller et al. Instant neural graphics primitives. SIGGRAPH 2022 (occupancy grid).
+J. C. Hart. Sphere tracing. The Visual Computer 12, 1996 (skipping empty space by its
+distance to the nearest occupied cell).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.ndimage import maximum_filter
+from scipy.ndimage import distance_transform_cdt, maximum_filter
 from torch import nn
 
 from .cameras import Intrinsics
@@ -28,6 +30,7 @@ from .fields.base import RaySampling
 
 TERMINATION = 1e-4  # samples behind less transmittance skip the colour part
 SEGMENT = 32  # samples a ray marched at a time, between checks for termination (rendering)
+MAX_SKIPS = 16  # sphere-tracing steps across empty space before a ray is marched
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
 OCCUPIED_ALPHA = 0.03  # a cell is occupied when one step through it is this opaque
 
@@ -180,12 +183,55 @@ class OccupancyGrid(nn.Module):
         return nn.functional.max_pool3d(self.occupied[None, None].float(), 2 * margin + 1, 1,
                                         margin)[0, 0].bool()
 
+    def free_distance(self) -> torch.Tensor:
+        """(X, Y, Z) float: chessboard distance of each cell to the nearest occupied one, in
+        cells (0 when occupied; the grid's largest side when none is); computed again only
+        when ``occupied`` has changed."""
+        key = (self.occupied.data_ptr(), self.occupied._version)
+        if getattr(self, "_free", (None, None))[0] != key:
+            occupied = self.occupied.cpu().numpy()
+            far = float(max(occupied.shape))
+            distance = (distance_transform_cdt(~occupied, metric="chessboard").astype(np.float32)
+                        if occupied.any() else np.full(occupied.shape, far, np.float32))
+            self._free = key, torch.as_tensor(distance, device=self.occupied.device)
+        return self._free[1]
+
+    def skip_empty(self, origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor,
+                   far: torch.Tensor, step: float) -> torch.Tensor:
+        """(R,) entry distances ``near`` moved on by whole ``step``s across empty space, to
+        within a cell of the first occupied cell on each ray (``far`` for rays that meet
+        none): at a point d cells from the nearest occupied cell, a ray can move d - 1 cells
+        before it can enter one (``free_distance``; sphere tracing on the occupancy grid)."""
+        distance = self.free_distance().flatten()
+        cell = float((2 * self.extent / self.resolution).min())
+        t = near.clone()
+        active = torch.nonzero(t < far)[:, 0]
+        o, d, at, end = origins[active], directions[active], t[active], far[active]
+        for _ in range(MAX_SKIPS):
+            advance = (distance[self._cell(o + at[:, None] * d)[0]] - 1).clamp(min=0) * cell
+            at = at + advance
+            t[active] = at
+            keep = (advance > 0) & (at < end)
+            active, o, d, at, end = active[keep], o[keep], d[keep], at[keep], end[keep]
+            if len(active) == 0:
+                break
+        whole = torch.floor((torch.minimum(t, far) - near) / step) * step
+        return torch.where(t < far, near + whole, far)
+
     def lookup(self, x: torch.Tensor) -> torch.Tensor:
         """(P,) bool: points inside the box and in an occupied cell."""
+        index, inside = self._cell(x)
+        return inside & self.occupied.flatten()[index]
+
+    def _cell(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(P,) flat index of the cell of each of (P, 3) points (the nearest cell for points
+        outside the box), and (P,) bool: whether the point is inside."""
         u = torch.floor((x + self.extent) / (2 * self.extent) * self.resolution).long()
         inside = ((u >= 0) & (u < self.resolution)).all(-1)
         u = torch.minimum(torch.clamp(u, min=0), self.resolution - 1)
-        return inside & self.occupied[u[:, 0], u[:, 1], u[:, 2]]
+        strides = torch.stack([self.resolution[1] * self.resolution[2], self.resolution[2],
+                               self.resolution[2] ** 0])
+        return (u * strides).sum(-1), inside
 
     @torch.no_grad()
     def update(self, field, step: float, generator: torch.Generator, decay: float = 0.95) -> None:
@@ -267,11 +313,14 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
 
     Samples are spaced ``sampling.step`` apart from where a ray enters the box
     (grids), or ``sampling.count`` evenly across the box (MLPs); ``generator``
-    jitters them (training). Samples in empty cells skip the field. Without
-    gradients (rendering), rays are marched ``SEGMENT`` samples at a time, and a
-    ray whose transmittance has fallen below ``TERMINATION`` is not marched further
-    (early ray termination); with gradients, in one pass (each pass of a grid
-    backbone costs a backward over its whole grids).
+    jitters them (training). Stepped rays start marching in whole steps past the empty
+    space in front of them (``OccupancyGrid.skip_empty``), so their samples stay where
+    they were; samples in empty cells skip the field. Without gradients (rendering),
+    rays are marched ``SEGMENT`` samples at a time, a ray whose transmittance has
+    fallen below ``TERMINATION`` is not marched further (early ray termination), and
+    stepped rays skip empty space again after each segment (past a floater to the
+    surface behind it); with gradients, in one pass (each pass of a grid backbone
+    costs a backward over its whole grids).
 
     Parameters
     ----------
@@ -283,19 +332,20 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         n_samples = sampling.count
         deltas = (far - near) / n_samples  # (R,)
     else:
+        near = occupancy.skip_empty(origins, directions, near, far, sampling.step)
         n_samples = max(1, int(torch.ceil((far - near).max() / sampling.step)))
         deltas = torch.full_like(near, sampling.step)
     jitter = (torch.full_like(near[:, None], 0.5) if generator is None else
               torch.rand(len(near), 1, generator=generator, device=near.device))
     depth = torch.zeros_like(near)  # optical depth marched so far
+    first = torch.zeros_like(near)  # each ray's next sample, counted in steps from near
     alive = torch.arange(len(near), device=near.device)
     parts = []
-    segment = n_samples if torch.is_grad_enabled() else SEGMENT
-    for start in range(0, n_samples, segment):
-        offsets = torch.arange(start, min(start + segment, n_samples), device=near.device,
-                               dtype=near.dtype)
+    segment = n_samples if torch.is_grad_enabled() else min(SEGMENT, n_samples)
+    offsets = torch.arange(segment, device=near.device, dtype=near.dtype)
+    while True:
         enter, step, leave = near[alive, None], deltas[alive, None], far[alive, None]
-        t = enter + (offsets + jitter[alive]) * step  # (A, S)
+        t = enter + (first[alive, None] + offsets + jitter[alive]) * step  # (A, S)
         valid = t < leave
         points = origins[alive, None] + t[..., None] * directions[alive, None]  # (A, S, 3)
         valid[valid.clone()] = occupancy.lookup(points[valid])
@@ -306,8 +356,15 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         parts.append((alive[row], h, weights[row, sample], transmittance[row, sample],
                       sigma_packed * step[row, 0]))
         depth = depth.index_add(0, alive, (sigma * step).sum(1))
-        more = (enter + (start + segment) * step < leave)[:, 0]
-        alive = alive[(depth[alive].detach() < -math.log(TERMINATION)) & more]
+        first[alive] += segment
+        at = near[alive] + first[alive] * deltas[alive]
+        alive = alive[(depth[alive].detach() < -math.log(TERMINATION)) & (at < far[alive])]
+        if sampling.step is not None and len(alive) and segment < n_samples:
+            at = near[alive] + first[alive] * sampling.step  # across empty space again
+            moved = occupancy.skip_empty(origins[alive], directions[alive], at, far[alive],
+                                         sampling.step)
+            first[alive] += torch.round((moved - at) / sampling.step)
+            alive = alive[moved < far[alive]]
         if len(alive) == 0:
             break
     ray, h, weight, transmittance, optical = (torch.cat(part) for part in zip(*parts))

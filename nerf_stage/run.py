@@ -26,7 +26,7 @@ from .rendering import OccupancyGrid, SceneBox, render_rays
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
-RENDER_CHUNK = 1 << 13  # rays per forward pass when rendering whole views
+RENDER_CHUNK = 1 << 15  # rays per forward pass when rendering whole views
 _CHECKPOINT_KEYS = ("iteration", "config", "field", "output", "optimisers", "generator",
                     "occupancy", "box", "intrinsics", "palette", "basis", "order", "meta", "log")
 

@@ -157,7 +157,7 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
         loss = _weight_loss(run.field.kind, values, rays["weights"])
         rgb = values @ terms + (1 - acc[:, None]) * background
         if run.config.rgb_weight:
-            loss = loss + run.config.rgb_weight * torch.mean((rgb - rays["rgb"]) ** 2)
+            loss = loss + run.config.rgb_weight * _recorded_loss(rgb, rays["rgb"])
     if acc.requires_grad:
         loss = loss + run.config.opacity_weight * torch.mean((acc - rays["alpha"]) ** 2)
         if run.config.sparsity_weight:
@@ -165,6 +165,13 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
     with torch.no_grad():
         mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"]) ** 2))
     return loss, psnr_from_mse(max(mse, 1e-10))
+
+
+def _recorded_loss(rgb: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
+    """L2 of (R, 3) colours through the weights against the images, as a camera records them:
+    clipped at 1, so that a lamp of radiance 30 is not pulled down to the image's 1 (which
+    would move its weight onto the materials' channels)."""
+    return torch.mean((rgb.clamp(max=1) - images) ** 2)
 
 
 def _sparsity(optical: torch.Tensor) -> torch.Tensor:
