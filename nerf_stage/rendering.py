@@ -140,8 +140,8 @@ class OccupancyGrid(nn.Module):
     exponential moving maximum over random points in each cell) makes one
     step through it at least ``OCCUPIED_ALPHA`` opaque, or as opaque as the mean
     cell while the density is still low everywhere. The grids are buffers:
-    ``hull``, ``occupied`` and ``density`` are saved in ``state_dict``; ``extent``
-    and ``resolution`` follow from the config and are not.
+    ``hull``, ``occupied`` and ``density`` are saved in ``state_dict``; ``extent``,
+    ``resolution`` and the ``cell_*`` constants follow from the config and are not.
     """
 
     def __init__(self, extent: torch.Tensor, cells: int):
@@ -154,6 +154,13 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("hull", torch.ones(shape, dtype=torch.bool))
         self.register_buffer("occupied", self.hull.clone())
         self.register_buffer("density", torch.zeros(shape))
+        # _cell: point -> cell index in the lookup tables, padded by an empty cell a side
+        scale, size = resolution / (2 * extent), resolution + 2
+        strides = torch.stack([size[1] * size[2], size[2], size[2] ** 0])
+        self.register_buffer("cell_scale", scale.float(), persistent=False)
+        self.register_buffer("cell_shift", (extent * scale + 1).float(), persistent=False)
+        self.register_buffer("cell_last", (resolution + 1).float(), persistent=False)
+        self.register_buffer("cell_strides", strides.float(), persistent=False)
 
     def carve(self, box: SceneBox, poses: np.ndarray, intrinsics: Intrinsics,
               alpha: np.ndarray) -> None:
@@ -185,16 +192,29 @@ class OccupancyGrid(nn.Module):
 
     def free_distance(self) -> torch.Tensor:
         """(X, Y, Z) float: chessboard distance of each cell to the nearest occupied one, in
-        cells (0 when occupied; the grid's largest side when none is); computed again only
-        when ``occupied`` has changed."""
-        key = (self.occupied.data_ptr(), self.occupied._version)
-        if getattr(self, "_free", (None, None))[0] != key:
-            occupied = self.occupied.cpu().numpy()
-            far = float(max(occupied.shape))
-            distance = (distance_transform_cdt(~occupied, metric="chessboard").astype(np.float32)
-                        if occupied.any() else np.full(occupied.shape, far, np.float32))
-            self._free = key, torch.as_tensor(distance, device=self.occupied.device)
-        return self._free[1]
+        cells (0 when occupied; more than any ray crosses when none is)."""
+        return self._tables()[2][1:-1, 1:-1, 1:-1]
+
+    def _tables(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Flat tables over the padded grid, indexed by ``_cell``: whether each cell is
+        occupied, and how far a ray can move from any point in it without entering an
+        occupied cell (d - 1 cells at chessboard distance d, normalised units); and the
+        padded ``free_distance``. Computed again only when ``occupied`` has changed."""
+        occupied = self.occupied
+        cached = getattr(self, "_cached", None)
+        if cached is None or cached[0] is not occupied or cached[1] != occupied._version:
+            padded = torch.zeros(tuple(s + 2 for s in occupied.shape), dtype=torch.bool,
+                                 device=occupied.device)
+            padded[1:-1, 1:-1, 1:-1] = occupied
+            empty = ~padded.cpu().numpy()
+            distance = torch.as_tensor(
+                distance_transform_cdt(empty, metric="chessboard").astype(np.float32)
+                if not empty.all() else np.full(empty.shape, sum(empty.shape), np.float32),
+                device=occupied.device)
+            cell = float((2 * self.extent / self.resolution).min())
+            free = (distance - 1).clamp(min=0) * cell
+            self._cached = occupied, occupied._version, (padded.flatten(), free.flatten(), distance)
+        return self._cached[2]
 
     def skip_empty(self, origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor,
                    far: torch.Tensor, step: float) -> torch.Tensor:
@@ -202,36 +222,25 @@ class OccupancyGrid(nn.Module):
         within a cell of the first occupied cell on each ray (``far`` for rays that meet
         none): at a point d cells from the nearest occupied cell, a ray can move d - 1 cells
         before it can enter one (``free_distance``; sphere tracing on the occupancy grid)."""
-        distance = self.free_distance().flatten()
-        cell = float((2 * self.extent / self.resolution).min())
-        t = near.clone()
-        active = torch.nonzero(t < far)[:, 0]
-        o, d, at, end = origins[active], directions[active], t[active], far[active]
+        free = self._tables()[1]
+        t = near
         for _ in range(MAX_SKIPS):
-            advance = (distance[self._cell(o + at[:, None] * d)[0]] - 1).clamp(min=0) * cell
-            at = at + advance
-            t[active] = at
-            keep = (advance > 0) & (at < end)
-            active, o, d, at, end = active[keep], o[keep], d[keep], at[keep], end[keep]
-            if len(active) == 0:
+            advance = free[self._cell(torch.addcmul(origins, t[:, None], directions))]
+            t = t + advance
+            if not bool((advance > 0).any()):
                 break
         whole = torch.floor((torch.minimum(t, far) - near) / step) * step
         return torch.where(t < far, near + whole, far)
 
     def lookup(self, x: torch.Tensor) -> torch.Tensor:
-        """(P,) bool: points inside the box and in an occupied cell."""
-        index, inside = self._cell(x)
-        return inside & self.occupied.flatten()[index]
+        """(...) bool: (..., 3) points inside the box and in an occupied cell."""
+        return self._tables()[0][self._cell(x)]
 
-    def _cell(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(P,) flat index of the cell of each of (P, 3) points (the nearest cell for points
-        outside the box), and (P,) bool: whether the point is inside."""
-        u = torch.floor((x + self.extent) / (2 * self.extent) * self.resolution).long()
-        inside = ((u >= 0) & (u < self.resolution)).all(-1)
-        u = torch.minimum(torch.clamp(u, min=0), self.resolution - 1)
-        strides = torch.stack([self.resolution[1] * self.resolution[2], self.resolution[2],
-                               self.resolution[2] ** 0])
-        return (u * strides).sum(-1), inside
+    def _cell(self, x: torch.Tensor) -> torch.Tensor:
+        """(...) flat index into ``_tables`` of the cell of each of (..., 3) points; points
+        outside the box fall into the padding."""
+        padded = torch.floor(torch.addcmul(self.cell_shift, x, self.cell_scale))
+        return (torch.minimum(padded.clamp_(min=0), self.cell_last) @ self.cell_strides).long()
 
     @torch.no_grad()
     def update(self, field, step: float, generator: torch.Generator, decay: float = 0.95) -> None:
@@ -346,9 +355,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     while True:
         enter, step, leave = near[alive, None], deltas[alive, None], far[alive, None]
         t = enter + (first[alive, None] + offsets + jitter[alive]) * step  # (A, S)
-        valid = t < leave
         points = origins[alive, None] + t[..., None] * directions[alive, None]  # (A, S, 3)
-        valid[valid.clone()] = occupancy.lookup(points[valid])
+        valid = (t < leave) & occupancy.lookup(points)
         row, sample = torch.nonzero(valid, as_tuple=True)
         sigma_packed, h = field.density(points[row, sample])
         sigma = torch.zeros_like(t).index_put((row, sample), sigma_packed)
