@@ -15,7 +15,7 @@ from palette_core.outputs import check_outdir
 from palette_core.palette_file import read_palette_json
 from palette_core.stack import DEFAULT_STACK
 
-from .config import CONFIG_ENV, TrainConfig
+from .config import BAKE_FACTOR, CONFIG_ENV, TrainConfig
 from .simulation import (
     BUILTIN_SCENES,
     LAYOUTS,
@@ -100,9 +100,9 @@ def _add_render(commands) -> None:
                        help="dataset views to render (default test)")
     views.add_argument("--orbit", type=int, metavar="N", default=None,
                        help="render a turntable of N views instead")
-    render.add_argument("--baked", nargs="?", type=int, const=2, metavar="FACTOR",
+    render.add_argument("--baked", nargs="?", type=int, const=BAKE_FACTOR, metavar="FACTOR",
                         help="render through the colour part baked into a grid FACTOR (default "
-                             "2) times finer than the field's (grid runs "
+                             f"{BAKE_FACTOR}) times finer than the field's (grid runs "
                              "with a view-independent head: no network, faster)")
     render.add_argument("-o", "--output", required=True, metavar="DIR")
     render.add_argument("--force", action="store_true",
@@ -120,7 +120,7 @@ def _add_eval(commands) -> None:
     evaluate.add_argument("--palette", metavar="JSON", default=None,
                           help="edit to check on simulated scenes (default: the palette rolled "
                                "by one)")
-    evaluate.add_argument("--baked", nargs="?", type=int, const=2, metavar="FACTOR",
+    evaluate.add_argument("--baked", nargs="?", type=int, const=BAKE_FACTOR, metavar="FACTOR",
                           help="score the baked render (render --baked) instead of the network's")
     evaluate.set_defaults(run=_eval)
 

@@ -20,7 +20,7 @@ from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs
 
 from .cameras import Intrinsics, camera_rays
-from .config import TrainConfig
+from .config import BAKE_FACTOR, TrainConfig
 from .fields import Field, RaySampling, make_field
 from .rendering import OccupancyGrid, SceneBox, render_rays
 
@@ -106,7 +106,7 @@ class Run:
         """How renders sample rays (``GridConfig.render_step_voxels``)."""
         return self.field.sampling(self.config, render=True)
 
-    def baked(self, factor: int = 2) -> Run:
+    def baked(self, factor: int = BAKE_FACTOR) -> Run:
         """This run with its field baked for fast rendering (``Field.baked``)."""
         return replace(self, field=self.field.baked(self.occupancy, factor))
 

@@ -12,7 +12,7 @@ from nerf_stage import rendering  # noqa: E402
 from nerf_stage import trainer as trainer_module  # noqa: E402
 from nerf_stage.cameras import orbit_poses, rig_poses  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
-from nerf_stage.config import GridConfig, MLPConfig, TrainConfig  # noqa: E402
+from nerf_stage.config import BAKE_FACTOR, GridConfig, MLPConfig, TrainConfig  # noqa: E402
 from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.editing import read_render  # noqa: E402
 from nerf_stage.evaluation import psnr  # noqa: E402
@@ -305,7 +305,7 @@ def test_train_render_recolour_eval(cornell_run, tmp_path, capsys):
     expect_error(main, ["render", str(rundir), "--baked", "-o", str(out)],
                  "holds another render", capsys)
     assert main(["render", str(rundir), "--baked", "-o", str(tmp_path / "baked")]) == 0
-    assert read_render(tmp_path / "baked" / "render.npz").source["baked"] == 2
+    assert read_render(tmp_path / "baked" / "render.npz").source["baked"] == BAKE_FACTOR
     capsys.readouterr()
     expect_error(main, ["eval", str(rundir), "--baked", "9"], "must be in [1, 4], got 9", capsys)
     assert main(["eval", str(rundir), "--baked", "3"]) == 0

@@ -106,7 +106,7 @@ class Field(nn.Module, ABC):
         """How rays are sampled for this field under a ``TrainConfig``, in training or, with
         ``render``, in renders."""
 
-    def baked(self, occupancy, factor: int = 2) -> nn.Module:
+    def baked(self, occupancy, factor: int) -> nn.Module:
         """A copy for fast rendering whose colour part is a table look-up, ``factor`` times
         finer than the field's grid, where ``occupancy`` (``rendering.OccupancyGrid``) is
         occupied (``grid.BakedGrid``); InputError for backbones that cannot be baked."""

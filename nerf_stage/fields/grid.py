@@ -150,7 +150,7 @@ class GridField(Field):
                            / self.voxels_per_unit)
 
     @torch.no_grad()
-    def baked(self, occupancy, factor: int = 2) -> BakedGrid:
+    def baked(self, occupancy, factor: int) -> BakedGrid:
         if self.direction_frequencies is not None:
             raise InputError("a grid run with a view-dependent head (view_frequencies) "
                              "cannot be baked")
@@ -203,8 +203,8 @@ class BakedGrid(nn.Module):
         empty = torch.zeros(1, 1 + field.output.out_features, device=fine.device)
         empty[0, 0] = -GRID_DENSITY_SHIFT - 30  # never read: empty space
         self.register_buffer("table", torch.cat([*rows, empty]))  # (V + 1, 1 + C)
-        slot = torch.full(near.shape, len(ijk), dtype=torch.int64, device=fine.device)
-        slot[tuple(ijk.t())] = torch.arange(len(ijk), device=fine.device)
+        slot = torch.full(near.shape, len(ijk), dtype=torch.int32, device=fine.device)
+        slot[tuple(ijk.t())] = torch.arange(len(ijk), dtype=torch.int32, device=fine.device)
         self.register_buffer("slot", slot.flatten())
         self.register_buffer("extent", field.extent)
         self.register_buffer("resolution", fine)
