@@ -38,7 +38,7 @@ import torch
 from bench_simulate import EDITED
 
 from nerf_stage.cli import main as nerf_stage
-from nerf_stage.config import TrainConfig
+from nerf_stage.config import BAKE_FACTOR, TrainConfig
 from nerf_stage.data import load_dataset
 from nerf_stage.evaluation import evaluate
 from nerf_stage.run import CHECKPOINT, CONFIG, load_run
@@ -48,7 +48,7 @@ from palette_core.cli.decompose import main as decompose
 from palette_core.stack import read_stack
 
 SCENES = ("still-life", "cornell-box")
-BAKE_FACTORS = (2, 3)
+BAKE_FACTORS = range(2, BAKE_FACTOR + 1)  # up to the default
 
 #: Test PSNR / SSIM of PaletteNeRF (Q. Wu et al. 2022) beside ours. The still life stands
 #: beside the paper's additive scenes (Table 1: the average of six captured scenes; its NeRF:
