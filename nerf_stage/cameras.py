@@ -57,16 +57,20 @@ def focal_from_fov(width: int, fov_x_degrees: float) -> float:
     return focal_length(width, math.radians(fov_x_degrees))
 
 
-def camera_rays(pose: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """World rays through pixel centres of one camera (OpenGL axes: looks along -z).
+def camera_rays(pose: np.ndarray, intrinsics: Intrinsics,
+                supersampling: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """World rays of one camera (OpenGL axes: looks along -z) through the centres of an
+    n x n grid of sub-pixels in every pixel (n = ``supersampling``; 1: the pixel centres).
 
     Returns
     -------
-    origins, directions : (H, W, 3) float64
-        Directions are unit vectors.
+    origins, directions : (H, W, n^2, 3) float64
+        Directions are unit vectors; sub-pixels in row-major order.
     """
-    j, i = np.meshgrid(np.arange(intrinsics.height) + 0.5, np.arange(intrinsics.width) + 0.5,
-                       indexing="ij")
+    sub = (np.arange(supersampling) + 0.5) / supersampling
+    j = np.arange(intrinsics.height)[:, None, None, None] + sub[:, None]  # (H, 1, n, 1)
+    i = np.arange(intrinsics.width)[None, :, None, None] + sub             # (1, W, 1, n)
+    j, i = (a.reshape(intrinsics.height, intrinsics.width, -1) for a in np.broadcast_arrays(j, i))
     local = np.stack([(i - intrinsics.cx) / intrinsics.fx, -(j - intrinsics.cy) / intrinsics.fy,
                       -np.ones_like(i)], axis=-1)
     directions = local @ pose[:3, :3].T

@@ -102,6 +102,11 @@ class TrainConfig:
     """F: weight iterations of ``two-stage`` with the density part frozen."""
     batch_rays: int = 4096
     """Rays per iteration."""
+    supersampling: int = 1
+    """n: a pixel is the mean of n x n rays through the centres of its sub-pixels, in training
+    (``batch_rays`` rays, so n^2 times fewer pixels a batch) and in renders (n^2 times the
+    cost). A camera's pixels, and the simulator's, average over their area; one ray a pixel
+    can only point-sample edges (README, Weight NeRFs)."""
     head_width: int = 128
     """Width of the last hidden layer (the paper's 128/256/512 ablation)."""
     occupancy_voxels: int = 64**3
@@ -134,7 +139,8 @@ class TrainConfig:
         self.background = tuple(float(c) for c in self.background)
         _at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight")
         _at_least(self, 0, "pretrain_iters", "finetune_iters")
-        _at_least(self, 1, "batch_rays", "head_width", "occupancy_voxels", "checkpoint_every")
+        _at_least(self, 1, "batch_rays", "supersampling", "head_width", "occupancy_voxels",
+                  "checkpoint_every")
         if self.pretrain_iters + self.finetune_iters == 0:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
         if self.strategy == Strategy.TWO_STAGE and self.finetune_iters == 0:

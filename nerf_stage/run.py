@@ -110,16 +110,32 @@ class Run:
         """This run with its field baked for fast rendering (``Field.baked``)."""
         return replace(self, field=self.field.baked(self.occupancy, factor))
 
-    def render_rays(self, origins, directions, generator=None):
-        """Normalised rays -> (R, C) values and their ``rendering.Samples`` (``render_rays``),
-        sampled as in training."""
-        return render_rays(self.field, self.occupancy, origins, directions, self.sampling,
-                           generator)
+    def render_pixels(self, origins, directions, generator=None):
+        """Pixels of n^2 rays each, sampled as in training (``render_rays``).
+
+        Parameters
+        ----------
+        origins : (B, 3) normalised ray origins, one a pixel.
+        directions : (B, n^2, 3) unit directions of each pixel's rays.
+
+        Returns
+        -------
+        values : (B, C) the rays' values (premultiplied) averaged over each pixel.
+        opacity : (B,) averaged likewise.
+        samples : the rays' ``rendering.Samples``.
+        """
+        rays = directions.shape[1]
+        values, samples = render_rays(self.field, self.occupancy,
+                                      origins.repeat_interleave(rays, 0), directions.flatten(0, 1),
+                                      self.sampling, generator)
+        return (values.view(-1, rays, values.shape[-1]).mean(1),
+                samples.opacity.view(-1, rays).mean(1), samples)
 
     @torch.no_grad()
     def render(self, poses: np.ndarray, progress: bool = False,
                intrinsics: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Render whole views, with the training camera's ``intrinsics`` unless given.
+        """Render whole views, with the training camera's ``intrinsics`` unless given; a
+        pixel is the mean of its ``TrainConfig.supersampling``^2 rays.
 
         Returns
         -------
@@ -130,24 +146,29 @@ class Run:
         self.field.eval()
         device = self.occupancy.extent.device
         intrinsics = intrinsics or self.intrinsics
+        shape = (intrinsics.height, intrinsics.width, self.config.supersampling ** 2)
         values, accs = [], []
         for pose in tqdm(poses, desc="render", unit="view", disable=not progress):
-            origins, directions = normalised_rays(pose, intrinsics, self.box, device)
+            origins, directions = normalised_rays(pose, intrinsics, self.box, device,
+                                                  self.config.supersampling)
             chunks = (render_rays(self.field, self.occupancy, o, d, self.render_sampling)
-                      for o, d in zip(origins.split(RENDER_CHUNK), directions.split(RENDER_CHUNK)))
+                      for o, d in zip(origins.flatten(0, -2).split(RENDER_CHUNK),
+                                      directions.flatten(0, -2).split(RENDER_CHUNK)))
             outputs = [(v, samples.opacity) for v, samples in chunks]
-            shape = (intrinsics.height, intrinsics.width)
-            values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).cpu().numpy())
-            accs.append(torch.cat([a for _, a in outputs]).reshape(shape).cpu().numpy())
+            values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).mean(2)
+                          .cpu().numpy())
+            accs.append(torch.cat([a for _, a in outputs]).reshape(shape).mean(2).cpu().numpy())
         return np.stack(values), np.stack(accs)
 
 
-def normalised_rays(pose, intrinsics: Intrinsics, box: SceneBox, device):
-    """(H W, 3) origins in the normalised box and unit directions of one camera, float32."""
-    origins, directions = camera_rays(pose, intrinsics)
+def normalised_rays(pose, intrinsics: Intrinsics, box: SceneBox, device, supersampling: int = 1):
+    """(H W, n^2, 3) origins in the normalised box and unit directions of one camera's n^2
+    rays a pixel (``cameras.camera_rays``), float32."""
+    origins, directions = camera_rays(pose, intrinsics, supersampling)
     origins = (origins - box.centre) / box.scale
-    return (torch.as_tensor(origins.reshape(-1, 3), dtype=torch.float32, device=device),
-            torch.as_tensor(directions.reshape(-1, 3), dtype=torch.float32, device=device))
+    shape = (-1, supersampling ** 2, 3)
+    return (torch.as_tensor(origins.reshape(shape), dtype=torch.float32, device=device),
+            torch.as_tensor(directions.reshape(shape), dtype=torch.float32, device=device))
 
 
 def check_rundir(rundir: Path, resume: bool, force: bool) -> None:

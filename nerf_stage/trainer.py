@@ -122,8 +122,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             backbone = config.backbone_config
             if it >= backbone.warmup_iters and it % backbone.occupancy_every == 0:
                 run.occupancy.update(run.field, run.sampling.step, generator)
-        batch = torch.randint(len(rays["origins"]), (config.batch_rays,), generator=generator,
-                              device=device)
+        batch = _pixel_batch(config, rays, generator)
         run.field.train()
         loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
                            background, generator)
@@ -148,8 +147,7 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
     trains, ``opacity_weight`` x L2 of the opacity against alpha and ``sparsity_weight``
     x ``_sparsity``.
     """
-    values, samples = run.render_rays(rays["origins"], rays["directions"], generator)
-    acc = samples.opacity
+    values, acc, samples = run.render_pixels(rays["origins"], rays["directions"], generator)
     if run.field.kind == RGB:
         rgb = values + (1 - acc[:, None]) * background
         loss = torch.mean((rgb - rays["rgb"]) ** 2)
@@ -205,15 +203,25 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
 
 
 def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
+    """Every training pixel: (N, 3) origin, (N, n^2, 3) directions of its rays, (N, 3) rgb,
+    (N, M) weights, (N,) alpha."""
     origins, directions = zip(*(normalised_rays(dataset.poses[i], dataset.intrinsics, run.box,
-                                                device) for i in train_ids))
+                                                device, run.config.supersampling)
+                                for i in train_ids))
 
     def flat(a):
         return torch.as_tensor(a.reshape(-1, a.shape[-1]), dtype=torch.float32, device=device)
 
-    return {"origins": torch.cat(origins), "directions": torch.cat(directions),
+    return {"origins": torch.cat(origins)[:, 0], "directions": torch.cat(directions),
             "rgb": flat(dataset.images[train_ids]), "weights": flat(weights),
             "alpha": flat(dataset.alpha[train_ids, ..., None])[:, 0]}
+
+
+def _pixel_batch(config: TrainConfig, rays: dict, generator: torch.Generator) -> torch.Tensor:
+    """Random pixels of the ray bank, ``batch_rays`` rays in all (at least one pixel)."""
+    pixels = max(1, config.batch_rays // config.supersampling ** 2)
+    return torch.randint(len(rays["origins"]), (pixels,), generator=generator,
+                         device=rays["origins"].device)
 
 
 def _start_finetune(run: Run) -> None:
@@ -233,11 +241,12 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     instead of far below it (Cornell box after 150 RGB steps: 21.6 dB, not 2.8).
     """
     field = run.field
-    batch = torch.randint(len(rays["origins"]), (run.config.batch_rays,), generator=generator,
-                          device=rays["origins"].device)
-    directions = rays["directions"][batch]
+    batch = _pixel_batch(run.config, rays, generator)
+    pixel_rays = rays["directions"].shape[1]
+    directions = rays["directions"][batch].flatten(0, 1)
     with torch.no_grad():
-        samples = march_rays(field, run.occupancy, rays["origins"][batch], directions,
+        samples = march_rays(field, run.occupancy,
+                             rays["origins"][batch].repeat_interleave(pixel_rays, 0), directions,
                              run.sampling).visible()
         features = field.head(samples.h, directions[samples.ray])
     targets = rays["weights"][batch]
@@ -247,6 +256,7 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     def closure():
         fit.zero_grad()
         values = samples.composite(field.colour_output(features))
+        values = values.view(len(batch), pixel_rays, -1).mean(1)
         loss = _weight_loss(field.kind, values, targets)
         loss.backward()
         return loss

@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ torch = pytest.importorskip("torch")
 
 from nerf_stage import rendering  # noqa: E402
 from nerf_stage import trainer as trainer_module  # noqa: E402
-from nerf_stage.cameras import orbit_poses, rig_poses  # noqa: E402
+from nerf_stage.cameras import Intrinsics, orbit_poses, rig_poses  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.config import BAKE_FACTOR, GridConfig, MLPConfig, TrainConfig  # noqa: E402
 from nerf_stage.data import join_weights, load_dataset  # noqa: E402
@@ -167,6 +168,22 @@ def test_additive_renders_sum_to_the_opacity(still_life, tmp_path):
     assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
 
 
+def test_a_supersampled_pixel_is_the_mean_of_a_finer_cameras_pixels(still_life, tmp_path):
+    """With n = 2 a pixel averages the rays a camera of twice the resolution has through the
+    centres of its 2 x 2 sub-pixels; additive weights still sum to the opacity."""
+    run = trained(still_life, tiny_config(supersampling=2), tmp_path / "run")
+    poses = load_dataset(still_life).poses[:2]
+    weights, opacity = run.render(poses)
+    k = run.intrinsics
+    finer = Intrinsics(2 * k.width, 2 * k.height, 2 * k.fx, 2 * k.fy, 2 * k.cx, 2 * k.cy)
+    one_ray = replace(run, config=replace(run.config, supersampling=1))
+    fine_weights, fine_opacity = one_ray.render(poses, intrinsics=finer)
+    blocks = fine_weights.reshape(2, 16, 2, 16, 2, -1).mean((2, 4))
+    assert weights.shape == (2, 16, 16, 4) and np.allclose(weights, blocks, atol=1e-6)
+    assert np.allclose(opacity, fine_opacity.reshape(2, 16, 2, 16, 2).mean((2, 4)), atol=1e-6)
+    assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
+
+
 @pytest.mark.parametrize("scene", ["cornell", "still_life"])
 def test_baked_renders_approach_the_network_as_the_bake_gets_finer(scene, request, tmp_path):
     """Same opacity at every factor (the baked grid divides the field's cells), weights
@@ -226,7 +243,7 @@ def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_p
 
     def batch_loss():
         with torch.no_grad():
-            values, _ = run.render_rays(rays["origins"], rays["directions"])
+            values, _, _ = run.render_pixels(rays["origins"], rays["directions"])
             return float(trainer_module._weight_loss(run.field.kind, values, rays["weights"]))
 
     trainer_module._start_finetune(run)
