@@ -115,8 +115,8 @@ class Run:
 
         Parameters
         ----------
-        origins : (B, 3) normalised ray origins, one a pixel.
-        directions : (B, n^2, 3) unit directions of each pixel's rays.
+        origins, directions : (B, n^2, 3)
+            Normalised origins and unit directions of each pixel's rays (``normalised_rays``).
 
         Returns
         -------
@@ -126,7 +126,7 @@ class Run:
         """
         rays = directions.shape[1]
         values, samples = render_rays(self.field, self.occupancy,
-                                      origins.repeat_interleave(rays, 0), directions.flatten(0, 1),
+                                      origins.flatten(0, 1), directions.flatten(0, 1),
                                       self.sampling, generator)
         return (values.view(-1, rays, values.shape[-1]).mean(1),
                 samples.opacity.view(-1, rays).mean(1), samples)
@@ -152,8 +152,8 @@ class Run:
             origins, directions = normalised_rays(pose, intrinsics, self.box, device,
                                                   self.config.supersampling)
             chunks = (render_rays(self.field, self.occupancy, o, d, self.render_sampling)
-                      for o, d in zip(origins.flatten(0, -2).split(RENDER_CHUNK),
-                                      directions.flatten(0, -2).split(RENDER_CHUNK)))
+                      for o, d in zip(origins.flatten(0, 1).split(RENDER_CHUNK),
+                                      directions.flatten(0, 1).split(RENDER_CHUNK)))
             outputs = [(v, samples.opacity) for v, samples in chunks]
             values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).mean(2)
                           .cpu().numpy())

@@ -203,7 +203,7 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
 
 
 def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
-    """Every training pixel: (N, 3) origin, (N, n^2, 3) directions of its rays, (N, 3) rgb,
+    """Every training pixel: (N, n^2, 3) origins and directions of its rays, (N, 3) rgb,
     (N, M) weights, (N,) alpha."""
     origins, directions = zip(*(normalised_rays(dataset.poses[i], dataset.intrinsics, run.box,
                                                 device, run.config.supersampling)
@@ -212,7 +212,7 @@ def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
     def flat(a):
         return torch.as_tensor(a.reshape(-1, a.shape[-1]), dtype=torch.float32, device=device)
 
-    return {"origins": torch.cat(origins)[:, 0], "directions": torch.cat(directions),
+    return {"origins": torch.cat(origins), "directions": torch.cat(directions),
             "rgb": flat(dataset.images[train_ids]), "weights": flat(weights),
             "alpha": flat(dataset.alpha[train_ids, ..., None])[:, 0]}
 
@@ -245,9 +245,8 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     pixel_rays = rays["directions"].shape[1]
     directions = rays["directions"][batch].flatten(0, 1)
     with torch.no_grad():
-        samples = march_rays(field, run.occupancy,
-                             rays["origins"][batch].repeat_interleave(pixel_rays, 0), directions,
-                             run.sampling).visible()
+        samples = march_rays(field, run.occupancy, rays["origins"][batch].flatten(0, 1),
+                             directions, run.sampling).visible()
         features = field.head(samples.h, directions[samples.ray])
     targets = rays["weights"][batch]
     fit = torch.optim.LBFGS(field.output.parameters(), max_iter=iterations,
