@@ -106,7 +106,7 @@ class TrainConfig:
     """n: a pixel is the mean of n x n rays through the centres of its sub-pixels, in training
     (``batch_rays`` rays, so n^2 times fewer pixels a batch) and in renders (n^2 times the
     cost). A camera's pixels, and the simulator's, average over their area; one ray a pixel
-    can only point-sample edges (README, Weight NeRFs)."""
+    can only point-sample edges (docs/nerf.md, "Pixels are areas")."""
     head_width: int = 128
     """Width of the last hidden layer (the paper's 128/256/512 ablation)."""
     occupancy_voxels: int = 64**3
