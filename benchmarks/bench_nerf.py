@@ -15,9 +15,10 @@ order-2 transport weights. Then, on the test views:
 6. PSNR against training time: the training batches' PSNR over the seconds of
    each run, with the test PSNR at the end (figure ``nerf_psnr_time.png``).
 7. Baked rendering (``render --baked FACTOR``) against the network's, per scene
-   (``two-stage``): baking time, seconds and frames per second, test PSNR.
-8. The diffuse head (the default, which bakes) against a view-dependent one
-   (``--grid-view-frequencies 4``), per scene (``two-stage``).
+   (``two-stage``, per-sample diffuse colours, the runs that bake), beside the default
+   deferred head: baking time, seconds and frames per second, test PSNR.
+8. The colour part per scene (``two-stage``): the paper's per-sample diffuse colours,
+   per-sample view-dependent ones, and the default deferred view-dependent head.
 
 Tables 1 to 3 print the paper's numbers beside ours (``PAPER``, ``PAPER_WIDTHS``).
 
@@ -50,8 +51,11 @@ from palette_core.cli.decompose import main as decompose
 from palette_core.stack import read_stack
 
 SCENES = ("still-life", "cornell-box")
-VIEW_FREQUENCIES = 4  # of the view-dependent head set against the diffuse default
 BAKE_FACTORS = range(2, BAKE_FACTOR + 1)  # up to the default
+#: The colour parts set side by side: label, run, whether it bakes.
+COLOUR_PARTS = (("per sample, diffuse (paper)", "two-stage per-sample", "yes"),
+                ("per sample, view-dependent", "two-stage per-sample view", "no"),
+                ("deferred, view-dependent (default)", "two-stage", "no"))
 
 #: Test PSNR / SSIM of PaletteNeRF (Q. Wu et al. 2022) beside ours. The still life stands
 #: beside the paper's additive scenes (Table 1: the average of six captured scenes; its NeRF:
@@ -102,12 +106,15 @@ def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: P
     return scores
 
 
-def baked_table(scene: str, network: dict, rundir: Path, root: Path) -> None:
-    """The network's render against the run baked at each of ``BAKE_FACTORS``."""
+def baked_table(scene: str, runs: dict, rundir: Path, root: Path) -> None:
+    """The per-sample network's render against the run baked at each of ``BAKE_FACTORS``,
+    and the default deferred head's render."""
     run = load_run(rundir)
     dataset = load_dataset(root, run.config.background)
-    rows = [["network", "", network["seconds_per_view"], 1 / network["seconds_per_view"],
-             *rec(network), 0.0]]
+    network = runs["two-stage per-sample"]
+    rows = [[f"{label} network", "", s["seconds_per_view"], 1 / s["seconds_per_view"], *rec(s),
+             rec(s)[0] - rec(network)[0]]
+            for label, s in (("deferred", runs["two-stage"]), ("per-sample", network))]
     for factor in BAKE_FACTORS:
         start = time.perf_counter()
         baked = run.baked(factor)
@@ -116,7 +123,8 @@ def baked_table(scene: str, network: dict, rundir: Path, root: Path) -> None:
         rows.append([f"baked x{factor}", seconds, s["seconds_per_view"],
                      1 / s["seconds_per_view"], *rec(s), rec(s)[0] - rec(network)[0]])
     size = f"{dataset.intrinsics.width}x{dataset.intrinsics.height}"
-    table(f"{scene}: baked rendering against the network (two-stage, {size} views)",
+    table(f"{scene}: baked rendering against the network (two-stage, per-sample diffuse "
+          f"colours; {size} views)",
           ["render", "bake s", "s / frame", "frames / s", "test PSNR", "test SSIM",
            "PSNR - network"], rows)
 
@@ -176,12 +184,13 @@ def main() -> None:
         print(f"\n{scene}:", flush=True)
         root, stack = prepare(scene, args.out / "data")
         runs = args.out / "runs" / scene
+        per_sample = replace(base.grid, deferred=False)
         configs = {
             "rgb": replace(base, strategy="rgb"),
             "two-stage": base,
             "traditional": replace(base, strategy="traditional"),
-            "two-stage view": replace(base, grid=replace(base.grid,
-                                                         view_frequencies=VIEW_FREQUENCIES)),
+            "two-stage per-sample": replace(base, grid=replace(per_sample, view_frequencies=None)),
+            "two-stage per-sample view": replace(base, grid=per_sample),
         }
         if scene == "still-life":
             configs |= {f"two-stage w{w}": replace(base, head_width=w) for w in (256, 512)}
@@ -224,16 +233,15 @@ def main() -> None:
                 s["recolour_seconds_per_view"],
                 f"{s['seconds_per_view'] / s['recolour_seconds_per_view']:.0f}x"]])
     for scene, runs in results.items():
-        table(f"{scene}: diffuse against view-dependent head (two-stage)",
-              ["head", "test PSNR", "test SSIM", "edit PSNR", "training s", "s / frame",
+        table(f"{scene}: the colour part (two-stage; view-dependent heads see "
+              f"{base.grid.view_frequencies} frequencies of the view direction)",
+              ["colour part", "test PSNR", "test SSIM", "edit PSNR", "training s", "s / frame",
                "bakes"],
               [[head, *rec(runs[n]), runs[n].get("edit", {}).get("psnr", ""),
                 runs[n]["seconds"], runs[n]["seconds_per_view"], bakes]
-               for head, n, bakes in (("diffuse", "two-stage", "yes"),
-                                      (f"view, {VIEW_FREQUENCIES} frequencies",
-                                       "two-stage view", "no"))])
+               for head, n, bakes in COLOUR_PARTS])
     for scene, runs in results.items():
-        baked_table(scene, runs["two-stage"], args.out / "runs" / scene / "two-stage",
+        baked_table(scene, runs, args.out / "runs" / scene / "two-stage per-sample",
                     args.out / "data" / scene)
     args.out.mkdir(parents=True, exist_ok=True)
     plot(results, args.out / "nerf_psnr_time.png")

@@ -48,8 +48,14 @@ class GridConfig:
     """Voxels of the density and feature grids, spread over the scene box."""
     features: int = 12
     """Feature channels per voxel of the colour grid."""
-    view_frequencies: int | None = None
-    """Frequencies of the view direction's encoding in the head; None: diffuse."""
+    view_frequencies: int | None = 4
+    """Frequencies of the view direction's encoding in the head; None (``none`` on the command
+    line): diffuse."""
+    deferred: bool = True
+    """Shade each ray once, from its features composited along it, rather than each sample
+    (deferred shading; docs/nerf.md, "Deferred shading"): faster, and a view-dependent head
+    then tells a thin wall's two sides apart. False: the paper's per-sample colours, which
+    ``render --baked`` needs."""
     lr: float = 0.1
     """Adam learning rate of the voxel grids."""
     network_lr: float = 1e-3
@@ -65,6 +71,8 @@ class GridConfig:
     """Iterations before occupancy is refined from the learned density."""
 
     def __post_init__(self):
+        if not isinstance(self.deferred, bool):
+            raise InputError(f"deferred must be true or false, got {self.deferred!r}")
         _at_least(self, 1, "voxels", "features", "occupancy_every")
         _at_least(self, 0, "warmup_iters")
         if self.view_frequencies is not None:
@@ -184,7 +192,7 @@ class TrainConfig:
                 if not isinstance(value, dict) or set(value) - {f.name for f in fields(nested)}:
                     raise InputError(f"{source}: {name} must be an object of "
                                      f"{nested.__name__} fields")
-                value = nested(**value)
+                value = nested(**(_ADDED_NESTED_FIELDS.get(name, {}) | value))
             values[name] = value
         try:
             return cls(**values)
@@ -227,6 +235,8 @@ _NESTED = {"grid": GridConfig, "mlp": MLPConfig}
 
 #: Fields added since version 0.1.0, with the values that runs saved before them trained with.
 _ADDED_FIELDS = {"rgb_weight": 0.0, "sparsity_weight": 0.0}
+#: Likewise for the nested backbone configs, by config.
+_ADDED_NESTED_FIELDS = {"grid": {"deferred": False}}
 
 #: Flat field names of runs saved by version 0.1.0, and where they live now.
 _FLAT_FIELDS = {

@@ -315,6 +315,22 @@ class Samples:
                           dtype=values.dtype)
         return out.index_add(0, self.ray, self.weight[:, None] * values)
 
+    def colour_inputs(self, directions: torch.Tensor,
+                      deferred: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where the colour part runs: each sample's ``h`` and its ray's direction, or, when
+        ``deferred``, once a ray: its ``h`` composited and divided by its opacity, and its
+        (R, 3) ``directions`` (deferred shading, Hedman et al. Baking neural radiance
+        fields for real-time view synthesis. ICCV 2021)."""
+        if not deferred:
+            return self.h, directions[self.ray]
+        opacity = self.opacity.detach().clamp(min=TERMINATION)[:, None]
+        return self.composite(self.h) / opacity, directions
+
+    def composite_colours(self, values: torch.Tensor, deferred: bool) -> torch.Tensor:
+        """The colour part's outputs at ``colour_inputs`` -> (R, C) composited along the rays
+        (premultiplied by opacity)."""
+        return self.opacity[:, None] * values if deferred else self.composite(values)
+
 
 def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.Tensor,
                sampling: RaySampling, generator: torch.Generator | None = None) -> Samples:
@@ -383,7 +399,8 @@ def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
                 directions: torch.Tensor, sampling: RaySampling,
                 generator: torch.Generator | None = None) -> tuple[torch.Tensor, Samples]:
     """Composite the field's outputs along rays (``march_rays``); samples behind
-    ``TERMINATION`` transmittance skip the colour part (``Samples.visible``).
+    ``TERMINATION`` transmittance skip the colour part (``Samples.visible``), which runs
+    on each sample or, for a ``deferred`` field, once a ray (``Samples.colour_inputs``).
 
     Returns
     -------
@@ -395,5 +412,5 @@ def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
     """
     samples = march_rays(field, occupancy, origins, directions, sampling, generator)
     visible = samples.visible()
-    values = field.colour(visible.h, directions[visible.ray])  # (P, C)
-    return visible.composite(values), samples
+    values = field.colour(*visible.colour_inputs(directions, field.deferred))
+    return visible.composite_colours(values, field.deferred), samples

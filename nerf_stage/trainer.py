@@ -235,10 +235,10 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     """Fit the new output layer alone before fine-tuning starts.
 
     The frozen field is run once over a batch of training rays; the output layer's
-    inputs at their visible samples are cached, and the layer is fitted to the
-    rays' weights (the training loss) by L-BFGS on that cache. This costs about one
-    training step, and fine-tuning then starts near the RGB NeRF's batch PSNR
-    instead of far below it (Cornell box after 150 RGB steps: 21.6 dB, not 2.8).
+    inputs at their visible samples (at the rays, for deferred fields) are cached, and the
+    layer is fitted to the rays' weights (the training loss) by L-BFGS on that cache. This
+    costs about one training step, and fine-tuning then starts near the RGB NeRF's
+    batch PSNR instead of far below it (Cornell box after 150 RGB steps: 21.6 dB, not 2.8).
     """
     field = run.field
     batch = _pixel_batch(run.config, rays, generator)
@@ -247,14 +247,14 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     with torch.no_grad():
         samples = march_rays(field, run.occupancy, rays["origins"][batch].flatten(0, 1),
                              directions, run.sampling).visible()
-        features = field.head(samples.h, directions[samples.ray])
+        features = field.head(*samples.colour_inputs(directions, field.deferred))
     targets = rays["weights"][batch]
     fit = torch.optim.LBFGS(field.output.parameters(), max_iter=iterations,
                             line_search_fn="strong_wolfe")
 
     def closure():
         fit.zero_grad()
-        values = samples.composite(field.colour_output(features))
+        values = samples.composite_colours(field.colour_output(features), field.deferred)
         values = values.view(len(batch), pixel_rays, -1).mean(1)
         loss = _weight_loss(field.kind, values, targets)
         loss.backward()

@@ -40,6 +40,11 @@ TINY = {"occupancy_voxels": 6**3, "batch_rays": 64, "head_width": 16, "checkpoin
         "mlp": MLPConfig(samples=8)}
 
 
+#: The paper's per-sample diffuse colours, which bake.
+PER_SAMPLE = replace(TINY["grid"], deferred=False, view_frequencies=None)
+PER_SAMPLE_FLAGS = ["--no-grid-deferred", "--grid-view-frequencies", "none"]
+
+
 def tiny_config(**changes) -> TrainConfig:
     return TrainConfig(**(TINY | {"pretrain_iters": 2, "finetune_iters": 2} | changes))
 
@@ -190,7 +195,8 @@ def test_baked_renders_approach_the_network_as_the_bake_gets_finer(scene, reques
     non-negative (summing to the opacity for additive stacks), colours closer to the
     network's the finer the bake."""
     root = request.getfixturevalue(scene)
-    run = trained(root, tiny_config(pretrain_iters=20, finetune_iters=20), tmp_path / "run")
+    run = trained(root, tiny_config(pretrain_iters=20, finetune_iters=20, grid=PER_SAMPLE),
+                  tmp_path / "run")
     poses = load_dataset(root).poses[:2]
     weights, opacity = run.render(poses)
     agreement = []
@@ -203,12 +209,12 @@ def test_baked_renders_approach_the_network_as_the_bake_gets_finer(scene, reques
     assert agreement == sorted(agreement) and agreement[-1] > 22
 
 
-def test_only_view_independent_grids_bake(cornell, tmp_path):
-    for backbone, grid in (("mlp", TINY["grid"]),
-                           ("grid", GridConfig(voxels=12**3, view_frequencies=2))):
+def test_only_per_sample_diffuse_grids_bake(cornell, tmp_path):
+    for name, backbone, grid in (("mlp", "mlp", PER_SAMPLE), ("deferred", "grid", TINY["grid"]),
+                                 ("view", "grid", replace(PER_SAMPLE, view_frequencies=2))):
         run = trained(cornell, tiny_config(backbone=backbone, grid=grid, pretrain_iters=1,
-                                           finetune_iters=1), tmp_path / backbone)
-        with pytest.raises(InputError, match="cannot be baked"):
+                                           finetune_iters=1), tmp_path / name)
+        with pytest.raises(InputError, match="be baked"):
             run.baked()
 
 
@@ -295,6 +301,18 @@ def cornell_run(cornell, tmp_path_factory):
     return rundir, args
 
 
+@pytest.fixture(scope="module")
+def per_sample_run(cornell_run, tmp_path_factory):
+    """``cornell_run`` with the paper's per-sample diffuse colours."""
+    _, args = cornell_run
+    rundir = tmp_path_factory.mktemp("runs") / "per-sample"
+    args = [*args[:args.index("-o") + 1], str(rundir), *args[args.index("-o") + 2:]]
+    assert main([*args, *PER_SAMPLE_FLAGS]) == 0
+    config = load_run(rundir).config.grid
+    assert not config.deferred and config.view_frequencies is None
+    return rundir
+
+
 def test_train_render_recolour_eval(cornell_run, tmp_path, capsys):
     rundir, _ = cornell_run
     palette = tmp_path / "edit.json"
@@ -319,13 +337,20 @@ def test_train_render_recolour_eval(cornell_run, tmp_path, capsys):
     assert main(["eval", str(rundir)]) == 0
     printed = capsys.readouterr().out
     assert "RGB through the weights: PSNR" in printed and "re-simulated scene: PSNR" in printed
-    expect_error(main, ["render", str(rundir), "--baked", "-o", str(out)],
-                 "holds another render", capsys)
-    assert main(["render", str(rundir), "--baked", "-o", str(tmp_path / "baked")]) == 0
-    assert read_render(tmp_path / "baked" / "render.npz").source["baked"] == BAKE_FACTOR
+    expect_error(main, ["render", str(rundir), "--baked", "-o", str(tmp_path / "baked")],
+                 "per-sample diffuse colours", capsys)
+
+
+def test_per_sample_runs_render_and_score_baked(per_sample_run, tmp_path, capsys):
+    out = tmp_path / "baked"
+    assert main(["render", str(per_sample_run), "--baked", "-o", str(out)]) == 0
+    assert read_render(out / "render.npz").source["baked"] == BAKE_FACTOR
     capsys.readouterr()
-    expect_error(main, ["eval", str(rundir), "--baked", "9"], "must be in [1, 4], got 9", capsys)
-    assert main(["eval", str(rundir), "--baked", "3"]) == 0
+    expect_error(main, ["render", str(per_sample_run), "-o", str(out)], "holds another render",
+                 capsys)
+    expect_error(main, ["eval", str(per_sample_run), "--baked", "9"], "must be in [1, 4], got 9",
+                 capsys)
+    assert main(["eval", str(per_sample_run), "--baked", "3"]) == 0
     assert "RGB through the weights: PSNR" in capsys.readouterr().out
 
 
@@ -343,15 +368,15 @@ def test_a_run_trained_again_is_rendered_again(cornell_run, tmp_path, capsys):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_cpu_and_cuda_agree(cornell, cornell_run, tmp_path):
-    """The same checkpoint renders alike on both devices, through the network and baked,
+def test_cpu_and_cuda_agree(cornell, cornell_run, per_sample_run, tmp_path):
+    """The same checkpoints render alike on both devices, deferred, per sample and baked,
     and training runs on CUDA."""
-    rundir, _ = cornell_run
     poses = load_dataset(cornell).poses[:2]
-    on_cpu, on_cuda = (load_run(rundir, torch.device(d)) for d in ("cpu", "cuda"))
-    for a, b in zip(on_cpu.render(poses) + on_cpu.baked().render(poses),
-                    on_cuda.render(poses) + on_cuda.baked().render(poses)):
-        assert np.abs(a - b).max() < 1e-4
+    deferred, per_sample = ([load_run(rundir, torch.device(d)) for d in ("cpu", "cuda")]
+                            for rundir in (cornell_run[0], per_sample_run))
+    for on_cpu, on_cuda in (deferred, per_sample, [run.baked() for run in per_sample]):
+        for a, b in zip(on_cpu.render(poses), on_cuda.render(poses)):
+            assert np.abs(a - b).max() < 1e-4
     run = trained(cornell, tiny_config(), tmp_path / "cuda", device=torch.device("cuda"))
     weights, opacity = run.render(poses)
     assert np.isfinite(weights).all() and opacity.max() <= 1 + 1e-5
@@ -432,6 +457,14 @@ def test_runs_saved_before_a_loss_keep_training_without_it(loss):
         TrainConfig(**{loss: -1.0})
 
 
+def test_runs_saved_before_deferred_shading_keep_per_sample_colours():
+    saved = TrainConfig().to_dict()
+    del saved["grid"]["deferred"]
+    assert not TrainConfig.from_dict(saved).grid.deferred and TrainConfig().grid.deferred
+    with pytest.raises(InputError, match="deferred must be true or false"):
+        TrainConfig.from_dict({"grid": {"deferred": "yes"}})
+
+
 def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
     optical = torch.tensor([0.0, 0.005, 0.01, 3.0, 30.0], requires_grad=True)
     trainer_module._sparsity(optical).backward()
@@ -443,11 +476,35 @@ def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
 class _Sphere:
     """An opaque ball of radius 0.5 that shows its positions as colours."""
 
+    deferred = False
+
+    def __init__(self, radius: float = 0.5, density: float = 1e3):
+        self.radius, self.sigma = radius, density
+        self.shaded = 0  # points the colour part ran at
+
     def density(self, x):
-        return 1e3 * (x.norm(dim=-1) < 0.5).float(), x
+        return self.sigma * (x.norm(dim=-1) < self.radius).float(), x
 
     def colour(self, h, d):
+        self.shaded += len(h)
         return h
+
+
+def test_deferred_shading_runs_the_colour_part_once_a_ray():
+    """A linear colour part shades alike per sample and deferred, also through fog that
+    leaves rays part transparent; deferred shading runs it once a ray."""
+    occupancy = OccupancyGrid(torch.ones(3), 8**3)
+    origins = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.3, 0.1], [-3.0, 0.9, 0.0]])
+    directions = torch.tensor([[1.0, 0.0, 0.0]]).expand(3, 3)
+    per_sample, deferred = _Sphere(0.6, 0.5), _Sphere(0.6, 0.5)
+    deferred.deferred = True
+    with torch.no_grad():
+        expected, samples = render_rays(per_sample, occupancy, origins, directions,
+                                        RaySampling(step=0.01))
+        values, _ = render_rays(deferred, occupancy, origins, directions, RaySampling(step=0.01))
+    assert 0.1 < samples.opacity[0] < 0.9 and samples.opacity[2] == 0
+    assert torch.allclose(values, expected, atol=1e-5)
+    assert deferred.shaded == 3 and per_sample.shaded > 100
 
 
 def test_rendering_stops_rays_at_surfaces_and_keeps_their_values():

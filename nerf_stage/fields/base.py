@@ -75,10 +75,14 @@ class Field(nn.Module, ABC):
         Width of the last hidden layer (the output layer's input).
     refines_occupancy : bool
         Whether training refines the occupancy grid from this field's density.
+    deferred : bool
+        Whether the colour part shades each ray once, at its composited ``h``, rather than
+        each sample (``rendering.Samples.colour_inputs``).
     """
 
     head_width: int
     refines_occupancy: bool = False
+    deferred: bool = False
 
     @classmethod
     @abstractmethod
@@ -111,7 +115,7 @@ class Field(nn.Module, ABC):
         finer than the field's grid, where ``occupancy`` (``rendering.OccupancyGrid``) is
         occupied (``grid.BakedGrid``); InputError for backbones that cannot be baked."""
         raise InputError(f"a {type(self).__name__} cannot be baked (only the grid backbone with "
-                         "a view-independent head can)")
+                         "per-sample diffuse colours can)")
 
     def grid_parameters(self) -> list[nn.Parameter]:
         """Voxel grids, trained at the backbone's grid learning rate ``lr``; none by default."""

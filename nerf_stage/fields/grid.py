@@ -82,7 +82,9 @@ class GridField(Field):
         About this many voxels, cubic, spread over the box.
     direction_frequencies : int or None
         Positional encoding of the view direction fed to the head; None for a
-        view-independent (diffuse) colour, which generalises better from few pixels.
+        view-independent (diffuse) colour.
+    deferred : bool
+        Shade each ray once, at its composited features (``Field.deferred``).
 
     Examples
     --------
@@ -98,7 +100,8 @@ class GridField(Field):
     refines_occupancy = True
 
     def __init__(self, extent, voxels: int = 96**3, features: int = 12, head_width: int = 128,
-                 kind: str = RGB, channels: int = 3, direction_frequencies: int | None = None):
+                 kind: str = RGB, channels: int = 3, direction_frequencies: int | None = None,
+                 deferred: bool = False):
         super().__init__()
         extent = torch.as_tensor(extent, dtype=torch.float32)
         per_unit = (voxels / float(torch.prod(2 * extent))) ** (1 / 3)
@@ -110,6 +113,7 @@ class GridField(Field):
         self.voxels_per_unit = per_unit
         self.head_width = head_width
         self.direction_frequencies = direction_frequencies
+        self.deferred = deferred
         n = int(torch.prod(self.resolution))
         self.density_grid = nn.Embedding(n, 1)  # tables read by ``_Trilinear``
         self.feature_grid = nn.Embedding(n, features)
@@ -151,9 +155,10 @@ class GridField(Field):
 
     @torch.no_grad()
     def baked(self, occupancy, factor: int) -> BakedGrid:
-        if self.direction_frequencies is not None:
-            raise InputError("a grid run with a view-dependent head (view_frequencies) "
-                             "cannot be baked")
+        if self.deferred or self.direction_frequencies is not None:
+            raise InputError("only a grid run with per-sample diffuse colours can be baked "
+                             "(train with --no-grid-deferred --grid-view-frequencies none); "
+                             "a deferred head renders from the grids at about the baked speed")
         if not 1 <= factor <= MAX_BAKE_FACTOR:
             raise InputError(f"the bake factor must be in [1, {MAX_BAKE_FACTOR}], got {factor}")
         return BakedGrid(self, occupancy, factor)
@@ -162,7 +167,7 @@ class GridField(Field):
     def from_config(cls, config, extent, kind: str, channels: int) -> GridField:
         grid = config.grid
         return cls(extent, grid.voxels, grid.features, config.head_width, kind, channels,
-                   grid.view_frequencies)
+                   grid.view_frequencies, grid.deferred)
 
 
 class BakedGrid(nn.Module):
@@ -180,6 +185,8 @@ class BakedGrid(nn.Module):
     (``slot`` maps the fine grid's vertices to table rows). Has the ``density`` /
     ``colour`` / ``sampling`` of a field, nothing to train.
     """
+
+    deferred = False
 
     def __init__(self, field: GridField, occupancy, factor: int):
         super().__init__()

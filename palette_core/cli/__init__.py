@@ -103,7 +103,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, defaults, prefix: str 
     """One flag per field of the dataclass instance ``defaults``, nested dataclasses prefixed by
     their field name (``TrainConfig.grid.voxels`` -> ``--grid-voxels``), typed by the
     annotations, documented by the field docstrings, defaulting to ``defaults``' values.
-    Enums give choices; tuples take one value per element.
+    Enums give choices; tuples take one value per element; booleans give ``--x`` and
+    ``--no-x``; ``X | None`` fields also take ``none``.
     """
     cls = type(defaults)
     hints = typing.get_type_hints(cls)
@@ -121,8 +122,14 @@ def add_config_arguments(parser: argparse.ArgumentParser, defaults, prefix: str 
             options |= {"type": typing.get_args(kind)[0], "nargs": len(typing.get_args(kind))}
         elif isinstance(kind, type) and issubclass(kind, enum.Enum):
             options |= {"type": str, "choices": [str(member) for member in kind]}
-        else:  # X or X | None: the first type
-            options["type"] = next(t for t in typing.get_args(kind) or (kind,) if t is not None)
+        elif kind is bool:
+            options["action"] = argparse.BooleanOptionalAction
+        elif type(None) in typing.get_args(kind):  # X | None
+            options |= {"type": _or_none(next(t for t in typing.get_args(kind)
+                                             if t is not type(None))),
+                        "metavar": "X|none"}
+        else:
+            options["type"] = kind
         parser.add_argument("--" + name.replace("_", "-"), **options)
 
 
@@ -134,6 +141,16 @@ def config_from_args(cls: type, args: argparse.Namespace, prefix: str = ""):
         values[f.name] = (config_from_args(kind, args, prefix + f.name + "_")
                           if dataclasses.is_dataclass(kind) else getattr(args, prefix + f.name))
     return cls(**values)
+
+
+def _or_none(parse):
+    """An argparse type: ``none`` -> None, anything else through ``parse``."""
+
+    def parse_or_none(text: str):
+        return None if text.lower() == "none" else parse(text)
+
+    parse_or_none.__name__ = parse.__name__  # argparse names the type in its errors
+    return parse_or_none
 
 
 def _field_docstrings(cls: type) -> dict[str, str]:
