@@ -26,7 +26,6 @@ demo: $(BIN)/.installed
 	$(BIN)/python examples/edit_palette.py $(NERF)/weights.palette.json -o $(NERF)/recolored.json --force
 	$(BIN)/nerf-stage render $(NERF)/run --orbit 36 --palette $(NERF)/recolored.json --harmonize best -o $(NERF)/turntable --force
 	$(BIN)/nerf-stage eval $(NERF)/run
-	$(BIN)/nerf-stage eval $(NERF)/run --baked
 	@echo
 	@echo "Demo outputs in $(DEMO_OUT)/:"
 	@echo "  weights.palette.png, .json     extracted palette (swatch and JSON)"

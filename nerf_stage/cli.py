@@ -103,7 +103,7 @@ def _add_render(commands) -> None:
     render.add_argument("--baked", nargs="?", type=int, const=BAKE_FACTOR, metavar="FACTOR",
                         help="render through the colour part baked into a grid FACTOR (default "
                              f"{BAKE_FACTOR}) times finer than the field's (grid runs "
-                             "with a view-independent head: no network, faster)")
+                             "with per-sample diffuse colours: no network, faster)")
     render.add_argument("-o", "--output", required=True, metavar="DIR")
     render.add_argument("--force", action="store_true",
                         help="overwrite existing outputs (and a render.npz of other views)")
