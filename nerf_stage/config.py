@@ -56,6 +56,9 @@ class GridConfig:
     (deferred shading; docs/nerf.md, "Deferred shading"): faster, and a view-dependent head
     then tells a thin wall's two sides apart. False: the paper's per-sample colours, which
     ``render --baked`` needs."""
+    head_layers: int = 2
+    """Hidden layers of the head, each ``head_width`` wide (docs/nerf.md, "The colour
+    head")."""
     lr: float = 0.1
     """Adam learning rate of the voxel grids."""
     network_lr: float = 1e-3
@@ -73,7 +76,7 @@ class GridConfig:
     def __post_init__(self):
         if not isinstance(self.deferred, bool):
             raise InputError(f"deferred must be true or false, got {self.deferred!r}")
-        _at_least(self, 1, "voxels", "features", "occupancy_every")
+        _at_least(self, 1, "voxels", "features", "head_layers", "occupancy_every")
         _at_least(self, 0, "warmup_iters")
         if self.view_frequencies is not None:
             _at_least(self, 0, "view_frequencies")
@@ -236,7 +239,7 @@ _NESTED = {"grid": GridConfig, "mlp": MLPConfig}
 #: Fields added since version 0.1.0, with the values that runs saved before them trained with.
 _ADDED_FIELDS = {"rgb_weight": 0.0, "sparsity_weight": 0.0}
 #: Likewise for the nested backbone configs, by config.
-_ADDED_NESTED_FIELDS = {"grid": {"deferred": False}}
+_ADDED_NESTED_FIELDS = {"grid": {"deferred": False, "head_layers": 1}}
 
 #: Flat field names of runs saved by version 0.1.0, and where they live now.
 _FLAT_FIELDS = {

@@ -457,10 +457,12 @@ def test_runs_saved_before_a_loss_keep_training_without_it(loss):
         TrainConfig(**{loss: -1.0})
 
 
-def test_runs_saved_before_deferred_shading_keep_per_sample_colours():
+def test_runs_saved_before_deferred_shading_keep_their_one_layer_per_sample_head():
     saved = TrainConfig().to_dict()
-    del saved["grid"]["deferred"]
-    assert not TrainConfig.from_dict(saved).grid.deferred and TrainConfig().grid.deferred
+    del saved["grid"]["deferred"], saved["grid"]["head_layers"]
+    head = [(grid.deferred, grid.head_layers)
+            for grid in (TrainConfig.from_dict(saved).grid, TrainConfig().grid)]
+    assert head[0] == (False, 1) != head[1]
     with pytest.raises(InputError, match="deferred must be true or false"):
         TrainConfig.from_dict({"grid": {"deferred": "yes"}})
 

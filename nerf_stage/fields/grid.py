@@ -68,7 +68,7 @@ class _Trilinear(torch.autograd.Function):
 
 class GridField(Field):
     """Dense voxel grids over the scene box: density (the density part), and colour features
-    read by a small MLP of ``head_width`` (the colour part).
+    read by a small MLP of ``head_layers`` hidden layers of ``head_width`` (the colour part).
 
     Both grids are read at the same eight corners of each sample (trilinear
     interpolation as a gather, which is faster on CPUs than ``grid_sample``); the
@@ -85,6 +85,8 @@ class GridField(Field):
         view-independent (diffuse) colour.
     deferred : bool
         Shade each ray once, at its composited features (``Field.deferred``).
+    head_layers : int
+        Hidden layers of the head, ReLU after each.
 
     Examples
     --------
@@ -101,7 +103,7 @@ class GridField(Field):
 
     def __init__(self, extent, voxels: int = 96**3, features: int = 12, head_width: int = 128,
                  kind: str = RGB, channels: int = 3, direction_frequencies: int | None = None,
-                 deferred: bool = False):
+                 deferred: bool = False, head_layers: int = 1):
         super().__init__()
         extent = torch.as_tensor(extent, dtype=torch.float32)
         per_unit = (voxels / float(torch.prod(2 * extent))) ** (1 / 3)
@@ -121,6 +123,8 @@ class GridField(Field):
         nn.init.zeros_(self.feature_grid.weight)
         n_direction = 0 if direction_frequencies is None else 3 * (1 + 2 * direction_frequencies)
         self.hidden = nn.Linear(features + n_direction, head_width)
+        self.deeper = nn.ModuleList(nn.Linear(head_width, head_width)
+                                    for _ in range(head_layers - 1))
         self._init_output(kind, channels)
 
     def density(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -137,13 +141,17 @@ class GridField(Field):
     def head(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         if self.direction_frequencies is not None:
             h = torch.cat([h, positional_encoding(d, self.direction_frequencies)], dim=-1)
-        return nn.functional.relu(self.hidden(h), inplace=True)
+        h = nn.functional.relu(self.hidden(h), inplace=True)
+        for layer in self.deeper:
+            h = nn.functional.relu(layer(h), inplace=True)
+        return h
 
     def density_parameters(self) -> list[nn.Parameter]:
         return [self.density_grid.weight]
 
     def colour_parameters(self) -> list[nn.Parameter]:
-        return [self.feature_grid.weight, *self.hidden.parameters(), *self.output.parameters()]
+        return [self.feature_grid.weight, *self.hidden.parameters(),
+                *self.deeper.parameters(), *self.output.parameters()]
 
     def grid_parameters(self) -> list[nn.Parameter]:
         return [self.density_grid.weight, self.feature_grid.weight]
@@ -167,7 +175,7 @@ class GridField(Field):
     def from_config(cls, config, extent, kind: str, channels: int) -> GridField:
         grid = config.grid
         return cls(extent, grid.voxels, grid.features, config.head_width, kind, channels,
-                   grid.view_frequencies, grid.deferred)
+                   grid.view_frequencies, grid.deferred, grid.head_layers)
 
 
 class BakedGrid(nn.Module):
