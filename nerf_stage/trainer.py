@@ -265,10 +265,15 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
 
 def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
     """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they differ (a run
-    of an older nerf-stage, whose grids had their own SparseAdam)."""
+    of an older nerf-stage, whose grids had their own SparseAdam or were not channels-first)."""
     try:
         for optimiser, state in zip(optimisers, states, strict=True):
             optimiser.load_state_dict(state)
+            for group in optimiser.param_groups:
+                for p in group["params"]:
+                    moments = optimiser.state.get(p, {}).get("exp_avg", p)
+                    if moments.shape != p.shape:
+                        raise ValueError("moments of another shape")
     except (ValueError, KeyError, TypeError):
         raise InputError(f"{rundir} was trained with other optimisers (an older nerf-stage); "
                          "start afresh with --force") from None

@@ -106,11 +106,11 @@ def test_output_activations(make, kind, rng):
 
 def test_grid_interpolation_has_the_gradient_of_a_weighted_gather(rng):
     field = GridField([1, 1, 0.5], 5**3, 3, 8).double()
-    table = field.feature_grid.weight
+    table = field.feature_grid  # (C, N)
     x = torch.as_tensor(rng.uniform(-1, 1, (40, 3)))
     index, weight = _corners(x, field.extent, field.resolution, field.CORNERS)
     assert torch.autograd.gradcheck(lambda t: _Trilinear.apply(t, index, weight), (table,))
-    expected = (table[index] * weight[..., None]).sum(1)
+    expected = (table.t()[index] * weight[..., None]).sum(1)
     assert torch.allclose(_Trilinear.apply(table, index, weight), expected)
 
 
@@ -465,6 +465,44 @@ def test_runs_saved_before_deferred_shading_keep_their_one_layer_per_sample_head
     assert head[0] == (False, 1) != head[1]
     with pytest.raises(InputError, match="deferred must be true or false"):
         TrainConfig.from_dict({"grid": {"deferred": "yes"}})
+
+
+def test_runs_saved_with_embedding_tables_load_channels_first(rng):
+    """Grids were (N, C) ``embedding`` tables before they were (C, N); old runs read alike."""
+    field = GridField([1, 1, 0.5], 5**3, 3, 8)
+    with torch.no_grad():
+        for grid in field.grid_parameters():
+            grid.normal_()
+    old = {key: value for key, value in field.state_dict().items() if not key.endswith("grid")}
+    old |= {f"{name}.weight": getattr(field, name).t().clone()
+            for name in ("density_grid", "feature_grid")}
+    loaded = GridField([1, 1, 0.5], 5**3, 3, 8)
+    loaded.load_state_dict(old)
+    x = torch.as_tensor(rng.uniform(-1, 1, (40, 3)), dtype=torch.float32)
+    assert all(torch.equal(a, b) for a, b in zip(field.read(x), loaded.read(x)))
+
+
+def test_renders_read_the_feature_grid_as_it_is_after_each_step(rng):
+    """Reads in eval mode without gradients gather from a row-major copy of the grid
+    (``GridField._feature_rows``): it must follow optimiser steps and loading."""
+    field = GridField([1, 1, 0.5], 5**3, 3, 8)
+    x = torch.as_tensor(rng.uniform(-1, 1, (40, 3)), dtype=torch.float32)
+    optimiser = torch.optim.Adam(field.parameters(), lr=0.1, fused=True)
+    before = []
+    for _ in range(2):
+        field.train()
+        expected = field.read(x)[1]
+        expected.sum().backward()
+        field.eval()
+        with torch.no_grad():
+            before.append(field.read(x)[1])
+        assert torch.allclose(before[-1], expected)
+        optimiser.step()
+    assert not torch.equal(*before)
+    field.load_state_dict({key: value + 1 for key, value in field.state_dict().items()
+                           if key.endswith("grid")}, strict=False)
+    with torch.no_grad():
+        assert torch.allclose(field.read(x)[1], field.train().read(x)[1])
 
 
 def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
