@@ -23,7 +23,8 @@ order-2 transport weights. Then, on the test views:
 
 Tables 1 to 3 print the paper's numbers beside ours (``PAPER``, ``PAPER_WIDTHS``).
 
-    python benchmarks/bench_nerf.py [--out benchmarks/out/nerf] [--iters P F] [--quick]
+    python benchmarks/bench_nerf.py [--out benchmarks/out/nerf] [--iters P F] [--lr-decay D]
+                                    [--quick]
 
 Runs are cached in OUT/runs: a finished run with the same config is evaluated again,
 not retrained.
@@ -171,6 +172,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/nerf"))
     parser.add_argument("--iters", type=int, nargs=2, default=None, metavar=("P", "F"),
                         help="pretrain and fine-tune iterations (default: TrainConfig's)")
+    parser.add_argument("--lr-decay", type=float, default=TrainConfig.lr_decay,
+                        help="learning-rate decay over each stage (default: TrainConfig's)")
     parser.add_argument("--quick", action="store_true", help="a few iterations, to check")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     args = parser.parse_args()
@@ -178,8 +181,8 @@ def main() -> None:
                                                         TrainConfig.finetune_iters))
     device = "cuda" if torch.cuda.is_available() else "cpu"
     print(f"device: {device} ({torch.cuda.get_device_name() if device == 'cuda' else 'CPU'}, "
-          f"{torch.get_num_threads()} threads); P = {p}, F = {f}")
-    base = TrainConfig(pretrain_iters=p, finetune_iters=f)
+          f"{torch.get_num_threads()} threads); P = {p}, F = {f}, lr decay {args.lr_decay}")
+    base = TrainConfig(pretrain_iters=p, finetune_iters=f, lr_decay=args.lr_decay)
     results: dict[str, dict] = {}
     for scene in args.scenes:
         print(f"\n{scene}:", flush=True)

@@ -106,11 +106,14 @@ class TrainConfig:
     strategy: Strategy = Strategy.TWO_STAGE
     """``two-stage`` (RGB pretrain, then weights), ``traditional`` (weights from scratch),
     or ``rgb`` (an RGB NeRF only, the baseline)."""
-    pretrain_iters: int = 1400
+    pretrain_iters: int = 4200
     """P: RGB iterations of ``two-stage`` (``traditional`` and ``rgb`` train P + F on one
     target)."""
-    finetune_iters: int = 500
+    finetune_iters: int = 3000
     """F: weight iterations of ``two-stage`` with the density part frozen."""
+    lr_decay: float = 0.3
+    """Each stage's learning rates decay exponentially to this fraction of the backbone's by
+    the stage's end (``two-stage``: pretraining, then fine-tuning; 1: constant rates)."""
     batch_rays: int = 4096
     """Rays per iteration."""
     supersampling: int = 1
@@ -149,6 +152,7 @@ class TrainConfig:
         self.strategy = _member(Strategy, self.strategy, "strategy")
         self.background = tuple(float(c) for c in self.background)
         _at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight")
+        _positive(self, "lr_decay")
         _at_least(self, 0, "pretrain_iters", "finetune_iters")
         _at_least(self, 1, "batch_rays", "supersampling", "head_width", "occupancy_voxels",
                   "checkpoint_every")
@@ -237,7 +241,7 @@ class TrainConfig:
 _NESTED = {"grid": GridConfig, "mlp": MLPConfig}
 
 #: Fields added since version 0.1.0, with the values that runs saved before them trained with.
-_ADDED_FIELDS = {"rgb_weight": 0.0, "sparsity_weight": 0.0}
+_ADDED_FIELDS = {"rgb_weight": 0.0, "sparsity_weight": 0.0, "lr_decay": 1.0}
 #: Likewise for the nested backbone configs, by config.
 _ADDED_NESTED_FIELDS = {"grid": {"deferred": False, "head_layers": 1}}
 

@@ -122,6 +122,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             backbone = config.backbone_config
             if it >= backbone.warmup_iters and it % backbone.occupancy_every == 0:
                 run.occupancy.update(run.field, run.sampling.step, generator)
+        _decay_learning_rates(optimisers, config, it)
         batch = _pixel_batch(config, rays, generator)
         run.field.train()
         loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
@@ -277,6 +278,21 @@ def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
     except (ValueError, KeyError, TypeError):
         raise InputError(f"{rundir} was trained with other optimisers (an older nerf-stage); "
                          "start afresh with --force") from None
+
+
+def _decay_learning_rates(optimisers: list, config: TrainConfig, it: int) -> None:
+    """Set the rates of iteration ``it``: each stage's decay exponentially from the rates its
+    optimisers started with (``initial_lr``, as torch's schedulers keep it) to
+    ``config.lr_decay`` times them at the stage's end."""
+    start, length = 0, config.total_iters
+    if config.strategy == Strategy.TWO_STAGE:
+        pretraining = it < config.pretrain_iters
+        start = 0 if pretraining else config.pretrain_iters
+        length = config.pretrain_iters if pretraining else config.finetune_iters
+    factor = config.lr_decay ** ((it - start) / length)
+    for optimiser in optimisers:
+        for group in optimiser.param_groups:
+            group["lr"] = group.setdefault("initial_lr", group["lr"]) * factor
 
 
 def _optimisers(run: Run) -> list[torch.optim.Optimizer]:

@@ -457,6 +457,20 @@ def test_runs_saved_before_a_loss_keep_training_without_it(loss):
         TrainConfig(**{loss: -1.0})
 
 
+def test_learning_rates_decay_to_lr_decay_over_each_stage():
+    config = tiny_config(pretrain_iters=4, finetune_iters=2, lr_decay=0.25)
+    rates = []
+    for it in range(6):
+        if it in (0, 4):  # each stage starts with new optimisers
+            optimiser = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=0.1)
+        trainer_module._decay_learning_rates([optimiser], config, it)
+        rates.append(optimiser.param_groups[0]["lr"])
+    assert rates == pytest.approx([0.1, 0.1 * 0.25**0.25, 0.05, 0.1 * 0.25**0.75, 0.1, 0.05])
+    assert TrainConfig.from_dict({}).lr_decay == 1.0 != TrainConfig().lr_decay  # runs saved before
+    with pytest.raises(InputError, match="lr_decay"):
+        TrainConfig(lr_decay=0)
+
+
 def test_runs_saved_before_deferred_shading_keep_their_one_layer_per_sample_head():
     saved = TrainConfig().to_dict()
     del saved["grid"]["deferred"], saved["grid"]["head_layers"]
