@@ -1,10 +1,12 @@
 """The studio's web page, on viser: a palette panel and a viewport.
 
 One editing session is shared by every browser tab; each tab has its own
-viewport (its own camera and aspect). The panel holds a colour picker per palette
-colour, before/after, undo and reset, harmonisation (``harmonize``), the image or
-camera, and the exports. Every write goes through the library's atomic writers;
-an output that exists is replaced only after the user confirms it.
+viewport (its own camera and aspect). The panel holds the status line, a colour
+picker per palette colour, before/after, undo and reset, harmonisation
+(``harmonize``), the image or camera, and the exports. Every write goes through the
+library's atomic writers; an output that exists is replaced only after the user
+confirms it. Only the studio's own page, opened with the launch's token, can connect
+(``guard``); viser's public share tunnel is switched off.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from harmonize.batch import BEST
 from palette_core.errors import InputError, OutputExists
 
 from .editor import PaletteEditor
+from .guard import Guard, guarded_server, is_loopback, log
 from .photos import THUMBNAIL_PIXELS, PhotoTarget
 from .scene import MAX_TURNTABLE, SceneTarget
 
@@ -33,6 +36,7 @@ STRIP = 7  # thumbnails around the current photo
 PREVIEW_ROWS = 24  # rows of a scene view while the camera moves
 SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
 JPEG_QUALITY = 92
+MAX_ASPECT = 8.0  # widest (and tallest) view drawn: a browser's aspect cannot size a render
 
 
 def check_port(host: str, port: int) -> None:
@@ -56,6 +60,12 @@ def letterbox(image: np.ndarray, aspect: float) -> np.ndarray:
     return canvas
 
 
+def bounded_aspect(camera) -> float:
+    """The browser's width / height, within [1 / MAX_ASPECT, MAX_ASPECT] (1 if not finite)."""
+    aspect = float(camera.aspect)
+    return float(np.clip(aspect, 1 / MAX_ASPECT, MAX_ASPECT)) if np.isfinite(aspect) else 1.0
+
+
 def to_bytes(image: np.ndarray) -> np.ndarray:
     return np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
 
@@ -69,6 +79,11 @@ def camera_pose(camera) -> np.ndarray:
     return pose
 
 
+def _no_share_url(*args, **kwargs) -> None:
+    """Stands in for viser's ``request_share_url``: a public tunnel would bypass the guard."""
+    log("refused a request for a public share URL")
+
+
 class Studio:
     """A running studio: ``Studio(target, host, port)`` serves until ``stop()``.
 
@@ -77,7 +92,10 @@ class Studio:
     target : PhotoTarget or SceneTarget
     editor : PaletteEditor
     server : viser.ViserServer
+    guard : guard.Guard
+    port : int
     url : str
+        The page's address with the launch's token: the only way in.
     """
 
     def __init__(self, target: PhotoTarget | SceneTarget, host: str = "127.0.0.1",
@@ -88,11 +106,23 @@ class Studio:
         self.lock = threading.RLock()
         self.image = 0  # photo mode: the image on screen
         self.views: dict[int, SceneView] = {}  # scene mode: per browser tab
-        with contextlib.redirect_stdout(sys.stderr):  # viser's banner: stdout is the URL's
+        self.guard = Guard(host, f"{target.path.name} - palette-studio")
+        with contextlib.redirect_stdout(sys.stderr), guarded_server(self.guard):
+            # viser's banner goes to stderr: stdout is the URL's
             self.server = viser.ViserServer(host=host, port=port, label="palette-studio",
                                             verbose=False)
-        self.url = f"http://{host}:{self.server.get_port()}"
+        self.server.request_share_url = _no_share_url
+        self.port = self.server.get_port()
+        shown = "127.0.0.1" if self.guard.wildcard else host
+        shown = f"[{shown}]" if ":" in shown else shown
+        self.url = f"http://{shown}:{self.port}/?token={self.guard.token}"
+        if not is_loopback(host):
+            log(f"warning: listening on {host}, not this machine only: anyone who can reach "
+                "it and has the URL (its token) can edit and write files as you")
+        self.server.gui.configure_theme(show_share_button=False, show_logo=False)
+        self.server.gui.main_panel.dock_right()  # beside the picture, not over it
         self.server.scene.set_up_direction("+y")
+        self.server.scene.world_axes.visible = False
         self.last_redraw_ms = float("nan")
         self._build_panel()
         self.server.on_client_connect(self._connect)
@@ -107,6 +137,8 @@ class Studio:
 
     def _build_panel(self) -> None:
         gui = self.server.gui
+        self.status = gui.add_markdown(f"editing `{self.target.path.name}`: "
+                                       f"{len(self.editor.palette)} colours")  # first: in sight
         with gui.add_folder("Palette"):
             self.pickers = []
             for i, colour in enumerate(self.editor.palette):
@@ -116,16 +148,17 @@ class Studio:
                 self.pickers.append(picker)
             self.before = gui.add_checkbox("show original", initial_value=False,
                                            hint="before/after: the target's own palette")
-            self.before.on_update(lambda event: self.redraw())
+            self.before.on_update(lambda event: self._apply(lambda: None))
             undo, reset = gui.add_button("undo"), gui.add_button("reset")
-            undo.on_click(lambda event: self._apply(self.editor.undo))
+            undo.on_click(lambda event: self._apply(self._undo))
             reset.on_click(lambda event: self._apply(self.editor.reset))
         with gui.add_folder("Harmonise"):
             template = gui.add_dropdown("template", [BEST, *TEMPLATES], initial_value=BEST)
             strength = gui.add_slider("strength", min=0.0, max=1.0, step=0.05,
                                      initial_value=1.0)
             gui.add_button("harmonise").on_click(lambda event: self._apply(
-                lambda: self.editor.harmonize(template.value, strength.value)))
+                lambda: "harmonised with template **"
+                        + self.editor.harmonize(template.value, strength.value) + "**"))
         if self.target.mode == "photos":
             self._build_photo_panel(gui)
         with gui.add_folder("Save"):
@@ -141,7 +174,6 @@ class Studio:
             button = "export images" if self.target.mode == "photos" else "export turntable"
             gui.add_button(button).on_click(lambda event: self._write(
                 event.client, lambda force: self._export(event.client, force)))
-        self.status = gui.add_markdown("")
 
     def _build_photo_panel(self, gui) -> None:
         names = self.target.names
@@ -152,6 +184,20 @@ class Studio:
             step.on_click(lambda event: self._show_image(
                 (self.image + (1 if event.target.value == "next" else -1)) % len(names)))
             self.strip = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="neighbours")
+            self.strip_buttons = gui.add_button_group("open", self._strip_labels(),
+                                                      hint="open an image of the strip")
+            self.strip_buttons.on_click(
+                lambda event: self._show_image(int(event.target.value.strip("[]")) - 1))
+
+    def _strip_images(self) -> list[int]:
+        """The images of the thumbnail strip: the current one in the middle."""
+        n = len(self.target.names)
+        return [(self.image + d) % n for d in range(-(STRIP // 2), STRIP // 2 + 1)][:n]
+
+    def _strip_labels(self) -> tuple[str, ...]:
+        """Image numbers of the strip's buttons, the current one in brackets."""
+        return tuple(f"[{i + 1}]" if i == self.image else str(i + 1)
+                     for i in self._strip_images())
 
     def _default_palette_path(self) -> Path:
         path = self.target.path
@@ -164,6 +210,8 @@ class Studio:
         def changed(event) -> None:
             if event.client is None:  # the server set it (undo, reset, harmonise)
                 return
+            if self.before.value:  # an edit shows the edited palette again
+                self.before.value = False
             self._apply(lambda: self.editor.set_colour(i, np.array(event.target.value) / 255))
         return changed
 
@@ -175,11 +223,14 @@ class Studio:
             except InputError as exc:
                 self.say(f"**error:** {exc}")
                 return
-            for picker, colour in zip(self.pickers, self.editor.palette):
+            for picker, colour in zip(self.pickers, self.shown_palette):
                 picker.value = tuple(to_bytes(colour).tolist())
             self.redraw()
             if isinstance(result, str):
-                self.say(f"harmonised with template **{result}**")
+                self.say(result)
+
+    def _undo(self) -> str:
+        return "undone" if self.editor.undo() else "nothing to undo"
 
     @property
     def shown_palette(self) -> np.ndarray:
@@ -210,13 +261,13 @@ class Studio:
 
     def _show_photo(self, client) -> None:
         image = self.target.view(self.image, self.shown_palette)
-        client.scene.set_background_image(letterbox(image, client.camera.aspect),
+        client.scene.set_background_image(letterbox(image, bounded_aspect(client.camera)),
                                           format="jpeg", jpeg_quality=JPEG_QUALITY)
 
     def _show_strip(self) -> None:
-        """Thumbnails of the images around the current one, the current one framed."""
-        n = len(self.target.names)
-        around = [(self.image + d) % n for d in range(-(STRIP // 2), STRIP // 2 + 1)][:n]
+        """Thumbnails of the images around the current one, the current one framed, and under
+        them a button each that opens it (the current one marked)."""
+        around = self._strip_images()
         thumbs = [self.target.view(i, self.shown_palette, THUMBNAIL_PIXELS) for i in around]
         height = max(t.shape[0] for t in thumbs)
         tiles = []
@@ -226,16 +277,17 @@ class Studio:
             tile[3:3 + thumb.shape[0], 3:-3] = thumb
             tiles.append(tile)
         self.strip.image = np.concatenate(tiles, axis=1)
+        self.strip_buttons.options = self._strip_labels()
 
     # Scene mode ---------------------------------------------------------------------
 
     def _connect(self, client) -> None:
         if self.target.mode == "photos":
-            aspect = [client.camera.aspect]
+            aspect = [bounded_aspect(client.camera)]
 
-            def resized(camera) -> None:  # the photo follows the camera; only its frame changes
-                if abs(camera.aspect - aspect[0]) > 1e-3:
-                    aspect[0] = camera.aspect
+            def resized(camera) -> None:  # orbit drags change nothing; a new frame letterboxes
+                if abs(bounded_aspect(camera) - aspect[0]) > 1e-3:
+                    aspect[0] = bounded_aspect(camera)
                     self._show_photo(client)
 
             client.camera.on_update(resized)
@@ -320,7 +372,7 @@ class SceneView:
 
     def intrinsics(self, rows: int | None = None):
         target = self.studio.target
-        return target.intrinsics(self.client.camera.aspect,
+        return target.intrinsics(bounded_aspect(self.client.camera),
                                  rows or target.run.intrinsics.height)
 
     def _loop(self) -> None:
