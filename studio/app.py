@@ -190,9 +190,12 @@ class Studio:
                 lambda event: self._show_image(int(event.target.value.strip("[]")) - 1))
 
     def _strip_images(self) -> list[int]:
-        """The images of the thumbnail strip: the current one in the middle."""
+        """The images of the thumbnail strip: all of a short stack, else the current one in the
+        middle of its neighbours."""
         n = len(self.target.names)
-        return [(self.image + d) % n for d in range(-(STRIP // 2), STRIP // 2 + 1)][:n]
+        if n <= STRIP:
+            return list(range(n))
+        return [(self.image + d) % n for d in range(-(STRIP // 2), STRIP // 2 + 1)]
 
     def _strip_labels(self) -> tuple[str, ...]:
         """Image numbers of the strip's buttons, the current one in brackets."""
