@@ -164,7 +164,8 @@ class Studio:
         with gui.add_folder("Save"):
             self.palette_path = gui.add_text("palette file",
                                              initial_value=str(self._default_palette_path()))
-            gui.add_button("save palette").on_click(lambda event: self._write(
+            self.save_button = gui.add_button("save palette")
+            self.save_button.on_click(lambda event: self._write(
                 event.client, lambda force: self.editor.save(self.palette_path.value, force)))
             label = "export folder" if self.target.mode == "photos" else "turntable GIF"
             self.export_path = gui.add_text(label, initial_value=str(self.target.default_export()))

@@ -176,10 +176,9 @@ def test_the_page_needs_the_token_and_its_own_host(studio, capsys):
 def test_sockets_only_from_the_studios_own_page(studio, capsys):
     """A WebSocket from another origin, or without the token, is refused at the handshake;
     the studio's own page with the token gets in."""
+    import viser
     from websockets.exceptions import InvalidStatus
     from websockets.sync.client import connect
-
-    import viser
 
     port, token = studio.port, studio.guard.token
     protocol = [f"viser-v{viser.__version__}"]

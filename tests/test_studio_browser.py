@@ -100,3 +100,76 @@ def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monk
 
     assert browser.wait_for(shows_the_recolouring, timeout=10), (browser.pixel(driver), low, high)
     assert not calls  # recoloured from the cached weights
+
+
+@pytest.fixture
+def attacker_site(tmp_path):
+    """A web site on another port of this machine: ``publish(html) -> url``."""
+    import functools
+    import http.server
+    import threading
+
+    site = tmp_path / "site"
+    site.mkdir()
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(site))
+    handler.log_message = lambda *args: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+
+    def publish(html: str) -> str:
+        (site / "index.html").write_text(html)
+        return f"http://127.0.0.1:{server.server_address[1]}/index.html"
+
+    yield publish
+    server.shutdown()
+
+
+@pytest.mark.parametrize("guarded", [True, False], ids=["guarded", "unguarded-control"])
+def test_a_page_from_another_origin_cannot_write_files(driver, serve, attacker_site, tmp_path,
+                                                       monkeypatch, guarded):
+    """A page of another site, open in the same browser, opens the studio's socket (even
+    knowing the token), types a palette path and presses *save palette*. The studio refuses
+    the socket and nothing is written; the control run without the guard shows that the same
+    page would have written the file."""
+    import json
+
+    import msgspec
+    import viser
+    from viser._messages import ViewerCameraMessage
+
+    from studio.guard import Guard
+
+    if not guarded:
+        monkeypatch.setattr(Guard, "refusal", lambda self, request, port: None)
+    write_stack(WeightStack(PALETTE, [np.full((4, 4, 3), 1 / 3, np.float32)], ["a.png"]),
+                tmp_path / "w.npz")
+    studio = serve(PhotoTarget.open(tmp_path / "w.npz"))
+    stolen = tmp_path / "planted" / "evil.json"
+    camera = ViewerCameraMessage((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 1.0, 0.01, 100.0, 400,
+                                 600, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    messages = [msgspec.msgpack.encode(camera.as_serializable_dict())] + [
+        msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": handle._impl.uuid,
+                                "updates": {"value": value}})
+        for handle, value in [(studio.palette_path, str(stolen)), (studio.save_button, True)]]
+    url = attacker_site(f"""<script>
+    window.result = "pending";
+    const socket = new WebSocket("ws://127.0.0.1:{studio.port}/?token={studio.guard.token}",
+                                 ["viser-v{viser.__version__}"]);
+    socket.binaryType = "arraybuffer";
+    socket.onopen = () => {{
+        window.result = "open";
+        for (const bytes of {json.dumps([list(m) for m in messages])})
+            socket.send(new Uint8Array(bytes));
+    }};
+    socket.onclose = () => {{ if (window.result === "pending") window.result = "refused"; }};
+    </script>""")
+    driver.get(url)
+    result = browser.wait_for(lambda: driver.execute_script(
+        "return window.result === 'pending' ? null : window.result"), timeout=20)
+    if guarded:
+        assert result == "refused"
+        time.sleep(1.0)  # what would have been written, given the time
+        assert not stolen.exists() and studio.palette_path.value != str(stolen)
+    else:
+        assert result == "open"
+        assert browser.wait_for(stolen.exists, timeout=20)
