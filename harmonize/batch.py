@@ -10,9 +10,9 @@ import numpy as np
 from tqdm import tqdm
 
 from palette_core.basis import weights_to_rgb
-from palette_core.collection import write_zarr_stack
+from palette_core.collection import check_store_output, write_zarr_stack
 from palette_core.errors import InputError
-from palette_core.outputs import atomic_outputs, check_outdir, check_writable, inside, save_image
+from palette_core.outputs import atomic_outputs, check_writable, inside, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.render import palette_swatch
 from palette_core.stack import WeightStack, is_zarr, write_stack
@@ -97,7 +97,7 @@ class StackHarmonization:
                         *(p for ps in renders.values() for p in ps),
                         *([sheet] if sheet else [])], force)
         for path in zarrs.values():
-            check_outdir(path, force)
+            check_store_output(path, force)
         for name, path in zarrs.items():
             write_zarr_stack(self.harmonized_stack(name), path, force)
         with atomic_outputs(force) as stage:

@@ -19,9 +19,12 @@ Videos are anything PyAV reads (``VIDEO_SUFFIXES``); their frames are named
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
+import shutil
+import tempfile
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -36,7 +39,7 @@ from .decompose import stored_weights
 from .errors import InputError, OutputExists
 from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, find_images, load_image
 from .mvc import rgb_to_mvc_weights
-from .outputs import atomic_outputs, check_writable
+from .outputs import atomic_outputs, check_apart, check_parent, check_writable, rename_no_replace
 from .palette_file import write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .polytope import Polytope
@@ -349,13 +352,21 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
     validate_method(palette_method, PALETTE_METHODS, "palette method")
     check_dtype(dtype)
     swatch, palette_json = palette_paths(output)
+    check_apart([output, swatch, palette_json], inputs)
     check_writable([swatch, palette_json], force or resume)
-    exists = _store_exists(output)
-    if exists and not (force or resume):
-        raise OutputExists(f"output {output} already exists (use --force to replace it or "
-                         "--resume to finish it)")
-    if resume and not exists:
-        raise InputError(f"--resume: {output} does not exist")
+    check_store_output(output, force)
+    partial = partial_store(output)
+    unfinished = is_stack_store(partial)
+    if resume and not unfinished:
+        raise InputError(f"--resume: {output} has no unfinished store to finish")
+    if unfinished and not (resume or force):
+        raise OutputExists(f"output {output} has an unfinished store (use --resume to finish "
+                           "it or --force to start afresh)")
+    if not resume and _exists(partial):
+        if not unfinished:
+            raise InputError(f"{partial} is in the way of the output and is not a weight "
+                             "stack store: move it away")
+        _remove_store(partial)  # our own unfinished store: --force starts afresh
     timings = {}
     start = time.perf_counter()
     sources = find_sources(inputs, max_pixels)
@@ -370,12 +381,13 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
     timings["palette"] = time.perf_counter() - start
     collection = Collection(sources, codes, counts, poly, timings)
     start = time.perf_counter()
-    store = _open_store(output, collection, k, max_error, palette_method, dtype, resume)
+    store = _open_store(partial, collection, k, max_error, palette_method, dtype, resume)
     weights = rgb_to_mvc_weights(_decode(codes), poly).astype(np.float32)
     todo = [t for t in tasks if not _complete(store, t)]
-    _pass2(todo, output, codes, weights, dtype, max_pixels, client, progress)
+    _pass2(todo, partial, codes, weights, dtype, max_pixels, client, progress)
     timings["pass2"] = time.perf_counter() - start
     store.attrs["meta"] = json.dumps({**json.loads(store.attrs["meta"]), "timings": timings})
+    _publish_store(partial, output, force)
     with atomic_outputs(force or resume) as stage:
         palette_swatch(poly.vertices).save(stage(swatch), format="PNG")
         with open(stage(palette_json), "w") as f:
@@ -508,14 +520,78 @@ def _bar(label: str, tasks: list[Task], progress: bool):
                 disable=not progress)
 
 
-def _store_exists(output: str) -> bool:
+def _exists(path: str) -> bool:
+    return "://" not in path and os.path.lexists(path)
+
+
+def is_stack_store(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a Zarr group of a weight stack (``format`` ``FORMAT``): a store
+    that this package wrote, which ``--force`` may replace."""
     import zarr
 
     try:
-        zarr.open_group(output, mode="r")
-    except (FileNotFoundError, zarr.errors.GroupNotFoundError, ValueError, OSError):
+        return zarr.open_group(str(path), mode="r").attrs.get("format") == FORMAT
+    except Exception:  # noqa: BLE001 - whatever zarr raises, it is not our store
         return False
-    return True
+
+
+def check_store_output(path: str | os.PathLike, force: bool) -> None:
+    """Fail early unless a store may be written at ``path``: nothing there (or an empty
+    folder), or, with ``force``, a weight stack store to replace. Anything else there is the
+    user's and is never replaced.
+
+    Raises
+    ------
+    InputError
+        Naming ``path``.
+    """
+    path = str(path)
+    if "://" in path:
+        if is_stack_store(path) and not force:
+            raise OutputExists(f"output {path} already exists (use --force to replace it)")
+        return
+    if not os.path.lexists(path) or (os.path.isdir(path) and not os.listdir(path)):
+        check_parent(Path(path))
+        return
+    if not is_stack_store(path):
+        raise InputError(f"output {path} exists and is not a weight stack store: refusing to "
+                         "replace it, even with --force (choose another -o)")
+    if not force:
+        raise OutputExists(f"output {path} already exists (use --force to replace it)")
+
+
+def partial_store(output: str) -> str:
+    """Where the store ``output`` is built until its pass 2 completes: a hidden sibling
+    (``.w.zarr.partial``) that ``--resume`` finds after a kill; a URL is built in place."""
+    if "://" in output:
+        return output
+    path = Path(output.rstrip("/"))
+    return str(path.with_name(f".{path.name}.partial"))
+
+
+def _publish_store(partial: str, output: str, force: bool) -> None:
+    """Rename the finished store onto ``output`` (a store there is replaced only with
+    ``force``, after ``check_store_output`` found it to be ours)."""
+    if partial == output:
+        return
+    with contextlib.suppress(OSError):
+        os.rmdir(output)  # an empty folder: what check_store_output allowed
+    if force and is_stack_store(output):
+        trash = tempfile.mkdtemp(prefix=f".{Path(output).name}.old.", dir=Path(output).parent)
+        os.replace(output, Path(trash) / "old")
+        os.replace(partial, output)
+        _remove_store(trash)
+        return
+    try:
+        rename_no_replace(Path(partial), Path(output))
+    except FileExistsError:
+        raise OutputExists(f"output {output} appeared while writing; it was kept, and the new "
+                           f"store waits in {partial} (--resume publishes it)") from None
+
+
+def _remove_store(path: str) -> None:
+    """Delete a store (or its trash folder) that this package made."""
+    shutil.rmtree(path, ignore_errors=True)
 
 
 def _array_name(source: Source, store) -> str:
@@ -536,7 +612,7 @@ def _open_store(output, collection: Collection, k, max_error, palette_method, dt
             raise InputError(f"--resume: {output} holds another collection or palette; start "
                              "afresh with --force")
         return store
-    store = zarr.open_group(output, mode="w")
+    store = zarr.open_group(output, mode="w" if is_stack_store(output) else "w-")
     m = n_terms(len(palette), Basis.ADDITIVE)
     arrays = {}
     for i, source in enumerate(collection.sources):
@@ -581,6 +657,7 @@ def write_zarr_stack(stack: WeightStack, path: str | os.PathLike, force: bool = 
 
     from .outputs import publish_folder
 
+    check_store_output(path, force)
     groups: dict[str, list[int]] = {}
     for i, name in enumerate(stack.names):
         groups.setdefault(name.split("#")[0] if "#" in name else name, []).append(i)
@@ -640,6 +717,8 @@ def read_zarr_stack(path: str) -> WeightStack:
     """
     import zarr
 
+    if not _exists(path) and is_stack_store(partial_store(path)):
+        raise InputError(f"{path} is incomplete: finish it with palette-decompose ... --resume")
     try:
         store = zarr.open_group(path, mode="r")
     except (FileNotFoundError, zarr.errors.GroupNotFoundError, ValueError, OSError) as exc:

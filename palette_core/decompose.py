@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,7 +11,7 @@ import numpy as np
 from .colour_set import ColourSet
 from .errors import InputError
 from .io import DEFAULT_MAX_PIXELS, find_images, load_images
-from .outputs import atomic_outputs, check_writable, save_image
+from .outputs import atomic_outputs, check_apart, check_writable, save_image
 from .palette_file import write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .registry import validate_method
@@ -87,7 +86,7 @@ class Decomposition:
             raise InputError(f"output must end in .npz, got {stack_path}")
         check_writable(paths, force)
         layers = None if layers is None else Path(layers)
-        self._check_apart_from_inputs(paths + ([layers] if layers is not None else []))
+        check_apart(paths + ([layers] if layers is not None else []), self.inputs)
         if layers is not None:
             if layers.exists() and (not layers.is_dir() or (any(layers.iterdir()) and not force)):
                 raise InputError(f"layers folder {layers} exists and is not empty "
@@ -106,14 +105,6 @@ class Decomposition:
                     save_image(stage(path), weights[..., j].astype(np.float32))
         self.timings["write"] = time.perf_counter() - start
         return paths + ([layers] if layers is not None else [])
-
-    def _check_apart_from_inputs(self, outputs: list[Path]) -> None:
-        for output in outputs:
-            target = Path(os.path.abspath(output))
-            for source in map(lambda p: Path(os.path.abspath(p)), self.inputs):
-                if target == source or (source.is_dir() and target.is_relative_to(source)):
-                    raise InputError(f"output {output} would land among the inputs ({source}), "
-                                     "where the next run reads it as an image: write it elsewhere")
 
 
 def decompose(

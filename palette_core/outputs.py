@@ -231,7 +231,25 @@ def check_writable(paths: list[Path], force: bool) -> None:
             raise OutputExists(f"output {path} already exists (use --force to overwrite)")
         if path.is_dir():
             raise InputError(f"output {path} is a folder, expected a file path")
-        _check_parent(path)
+        check_parent(path)
+
+
+def check_apart(outputs: list, inputs: list) -> None:
+    """Fail early if an output is an input, lies inside an input folder (where the next run
+    reads it as an input), or holds an input (replacing it would delete the input).
+
+    Raises
+    ------
+    InputError
+        Naming the output and the input.
+    """
+    for output in outputs:
+        target = Path(os.path.abspath(output))
+        for source in (Path(os.path.abspath(p)) for p in inputs):
+            if (target == source or (source.is_dir() and target.is_relative_to(source))
+                    or source.is_relative_to(target)):
+                raise InputError(f"output {output} would land among the inputs ({source}): "
+                                 "write it elsewhere")
 
 
 def check_outdir(outdir: str | os.PathLike, force: bool) -> None:
@@ -247,10 +265,10 @@ def check_outdir(outdir: str | os.PathLike, force: bool) -> None:
         raise InputError(f"output {outdir} exists and is not a folder")
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
         raise OutputExists(f"output folder {outdir} is not empty (use --force to replace it)")
-    _check_parent(outdir)
+    check_parent(outdir)
 
 
-def _check_parent(path: Path) -> None:
+def check_parent(path: Path) -> None:
     folder = next(p for p in [path.parent, *path.parent.parents] if p.exists())
     if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
         raise InputError(f"cannot write output {path}: {folder} is not a writable folder")

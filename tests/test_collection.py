@@ -121,3 +121,57 @@ def test_a_local_dask_cluster_gives_the_same_stack(photo_dir, tmp_path, rng, mon
     assert one.names == two.names and len(one.names) == 9
     for a, b in zip(one.weights, two.weights):
         assert np.allclose(a, b, atol=1e-6)
+
+
+# --- outputs never delete what they did not create ------------------------------------------
+
+def _user_folder(path):
+    path.mkdir()
+    (path / "thesis.txt").write_text("years of work")
+    return path
+
+
+@pytest.mark.parametrize("name", ["out.zarr", "out"])
+@pytest.mark.parametrize("force", [[], ["--force"]])
+def test_a_users_folder_is_never_replaced_by_a_store(photo_dir, tmp_path, capsys, name, force):
+    folder = _user_folder(tmp_path / name)
+    expect_error(decompose_cli.main, [str(photo_dir), "-k", "5", "-o", str(folder), *force],
+                 "is not a weight stack store", capsys)
+    assert (folder / "thesis.txt").read_text() == "years of work"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+@pytest.mark.parametrize("output", ["photos", "photos/sub", "photos/w.zarr", "."])
+def test_an_output_among_the_inputs_is_refused_before_anything_is_opened(photo_dir, tmp_path,
+                                                                         capsys, monkeypatch,
+                                                                         output):
+    monkeypatch.chdir(photo_dir)
+    before = sorted(p.relative_to(photo_dir) for p in photo_dir.rglob("*"))
+    target = str(tmp_path / output) if output != "." else "."
+    expect_error(decompose_cli.main, [str(photo_dir), "-o", target, "--force"],
+                 "would land among the inputs", capsys)
+    assert sorted(p.relative_to(photo_dir) for p in photo_dir.rglob("*")) == before
+
+
+def test_force_replaces_only_a_store_of_ours(photo_dir, tmp_path, capsys):
+    store = tmp_path / "w.zarr"
+    assert decompose_cli.main([str(photo_dir), "-k", "5", "-o", str(store)]) == 0
+    capsys.readouterr()
+    expect_error(decompose_cli.main, [str(photo_dir), "-k", "4", "-o", str(store)], "--force",
+                 capsys)
+    assert len(read_stack(store).palette) == 5
+    assert decompose_cli.main([str(photo_dir), "-k", "4", "-o", str(store), "--force"]) == 0
+    assert len(read_stack(store).palette) == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos", "w.palette.json",
+                                                          "w.palette.png", "w.zarr"]
+
+
+def test_harmonize_never_replaces_a_users_folder(photo_dir, tmp_path, capsys):
+    from harmonize.cli import main as harmonize
+
+    assert decompose_cli.main([str(photo_dir), "-k", "5", "-o", str(tmp_path / "w.npz")]) == 0
+    capsys.readouterr()
+    folder = _user_folder(tmp_path / "mine.zarr")
+    expect_error(harmonize, [str(tmp_path / "w.npz"), "--template", "triad", "-o", str(folder),
+                             "--force"], "is not a weight stack store", capsys)
+    assert (folder / "thesis.txt").exists()
