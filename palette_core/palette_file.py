@@ -1,6 +1,10 @@
-"""Palette files: ``{"palette": ["#rrggbb", ...]}`` (docs/formats.md).
+"""Palette files: ``{"palette": ["#rrggbb", ...], "rgb": [[r, g, b], ...]}`` (docs/formats.md).
 
-A list of ``[r, g, b]`` floats in [0, 1] is accepted too when reading.
+The hex codes are for people; ``rgb`` holds the same colours exactly (floats in [0, 1]),
+so that a palette saved by one command or the studio recolours to the same bytes in
+another. A colour whose hex code no longer matches its exact value was edited by hand:
+its hex code wins. Files with hex codes alone, or with ``[r, g, b]`` floats in
+``palette``, are read too.
 """
 
 from __future__ import annotations
@@ -24,8 +28,11 @@ def palette_to_hex(palette: np.ndarray) -> list[str]:
 
 
 def write_palette_json(file, palette: np.ndarray) -> None:
-    """Write ``{"palette": ["#rrggbb", ...]}`` to a path or text file object."""
-    text = json.dumps({"palette": palette_to_hex(palette)}, indent=2) + "\n"
+    """Write ``{"palette": ["#rrggbb", ...], "rgb": [[r, g, b], ...]}`` (exact) to a path or
+    text file object."""
+    exact = np.clip(np.asarray(palette, np.float64), 0, 1)
+    text = (f'{{\n  "palette": {json.dumps(palette_to_hex(exact))},\n'
+            f'  "rgb": {json.dumps(exact.tolist())}\n}}\n')
     if hasattr(file, "write"):
         file.write(text)
     else:
@@ -53,6 +60,14 @@ def read_palette_json(path: str | os.PathLike, k: int | None = None) -> np.ndarr
         raise InputError(f"palette file {path} must hold {{\"palette\": [colours...]}}")
     colours = [_parse_colour(entry, path, i) for i, entry in enumerate(entries)]
     palette = np.array(colours, np.float64)
+    if "rgb" in data:
+        exact = data["rgb"]
+        if not isinstance(exact, list) or len(exact) != len(entries):
+            raise InputError(f"palette file {path}: rgb must list as many colours as palette")
+        exact = np.array([_parse_colour(c if isinstance(c, list) else None, path, i)
+                          for i, c in enumerate(exact)], np.float64)
+        unedited = np.array(palette_to_hex(exact)) == np.array(palette_to_hex(palette))
+        palette[unedited] = exact[unedited]
     if k is not None and len(palette) != k:
         raise InputError(f"palette file {path} has {len(palette)} colours, expected {k}")
     return palette

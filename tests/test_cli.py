@@ -7,6 +7,7 @@ import pytest
 from PIL import Image
 
 from palette_core import read_stack
+from palette_core.basis import weights_to_rgb
 from palette_core.cli import decompose, recolor
 
 from .helpers import expect_error, weight_invariants
@@ -31,13 +32,13 @@ def test_decompose_then_recolor(photo_dir, tmp_path, capsys):
     assert len(json.loads((out / "w.palette.json").read_text())["palette"]) == k
     assert len(list((out / "layers").rglob("*.png"))) == 3 * k
 
-    # Recolour with the unedited palette: the stack's own reconstruction comes back
-    # (up to the 8-bit palette file and output rounding).
+    # Recolour with the unedited palette: the stack's own reconstruction comes back exactly
+    # (the palette file keeps the exact colours beside the hex codes).
     assert recolor.main([str(out / "w.npz"), "--palette", str(out / "w.palette.json"),
                          "-o", str(out / "same")]) == 0
-    expected = np.clip(stack.weights[0] @ stack.palette, 0, 1) * 255
+    expected = np.round(np.clip(weights_to_rgb(stack.weights[0], stack.palette), 0, 1) * 255)
     again = np.asarray(Image.open(out / "same" / "a.png"), float)
-    assert np.abs(expected - again).max() <= 1.0
+    assert np.array_equal(expected, again)
     assert (out / "same" / "sub" / "c.png").is_file()
 
 
@@ -99,6 +100,9 @@ def test_recolor_bad_input(photo_dir, tmp_path, capsys):
         ({"palette": [[0.1, 2.0, 0.3]] * k}, "outside [0, 1]"),
         ({"palette": ["#zzzzzz"] * k}, "not #rrggbb"),
         ({"colours": []}, "must hold"),
+        ({"palette": ["#000000"] * k, "rgb": [[0.0, 0.0, 0.0]] * (k - 1)}, "as many colours"),
+        ({"palette": ["#000000"] * k, "rgb": [[0.0, 0.0, float("nan")]] * k}, "outside [0, 1]"),
+        ({"palette": ["#000000"] * k, "rgb": ["#000000"] * k}, "neither #rrggbb"),
     ]
     for content, message in cases:
         bad.write_text(json.dumps(content))

@@ -1,5 +1,6 @@
 """palette-studio without a browser: the editing state, both targets, exports, bad input."""
 
+import json
 import socket
 
 import numpy as np
@@ -59,7 +60,7 @@ def test_editor_saves_the_cli_format_and_asks_before_replacing(tmp_path):
     editor.set_colour(0, [0, 0, 1])
     path = tmp_path / "edit.json"
     editor.save(path)
-    assert np.allclose(read_palette_json(path, k=4), np.round(editor.palette * 255) / 255)
+    assert np.array_equal(read_palette_json(path, k=4), editor.palette)
     editor.set_colour(0, [1, 1, 1])
     with pytest.raises(OutputExists):
         editor.save(path)
@@ -68,6 +69,32 @@ def test_editor_saves_the_cli_format_and_asks_before_replacing(tmp_path):
     assert read_palette_json(path)[0].tolist() == [1, 1, 1]
     with pytest.raises(InputError, match=".json"):
         editor.save(tmp_path / "edit.txt")
+
+
+def test_a_hand_edited_hex_code_wins_over_its_exact_colour(tmp_path):
+    path = tmp_path / "p.json"
+    write_palette_json(path, PALETTE)
+    data = json.loads(path.read_text())
+    data["palette"][1] = "#00ff00"
+    path.write_text(json.dumps(data))
+    read = read_palette_json(path)
+    assert read[1].tolist() == [0, 1, 0]
+    assert np.array_equal(np.delete(read, 1, 0), np.delete(PALETTE, 1, 0))  # exact
+
+
+def test_what_the_studio_exports_is_what_palette_recolor_makes_of_its_palette(tmp_path, rng):
+    """Harmonised colours are off the 8-bit grid: the saved file keeps them exactly, so the
+    command line recolours to the same bytes."""
+    target = PhotoTarget.open(tiny_stack(tmp_path / "w.npz", rng))
+    editor = PaletteEditor(target.palette, target.shares)
+    editor.harmonize("triad")
+    assert not np.array_equal(np.round(editor.palette * 255) / 255, editor.palette)
+    editor.save(tmp_path / "edit.json")
+    exported = target.export(tmp_path / "studio", editor.palette)
+    assert recolor([str(tmp_path / "w.npz"), "--palette", str(tmp_path / "edit.json"), "-o",
+                    str(tmp_path / "cli")]) == 0
+    for path in exported:
+        assert path.read_bytes() == (tmp_path / "cli" / path.name).read_bytes()
 
 
 def test_photo_views_recolour_the_stack(tmp_path, rng):
