@@ -48,6 +48,31 @@ def n_terms(k: int, basis: Basis, order: int = 1) -> int:
     return k if basis == Basis.ADDITIVE else comb(k + order, order)
 
 
+#: Most weight channels a basis may have (a transport order of 6 for 8 colours is 3003): a
+#: file that declares more is refused before anything is allocated.
+MAX_TERMS = 4096
+
+
+def check_basis(k: int, basis: Basis, order, source: str) -> int:
+    """M, the channels of ``basis`` for K colours at ``order``, after checking that ``order``
+    is an integer >= 1 (1 for additive) and M at most ``MAX_TERMS``.
+
+    Raises
+    ------
+    InputError
+        Naming ``source``.
+    """
+    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
+        raise InputError(f"{source}: order must be an integer >= 1, got {order!r}")
+    if basis == Basis.ADDITIVE and order != 1:
+        raise InputError(f"{source}: an additive stack has order 1, got {order}")
+    m = n_terms(k, basis, int(order))
+    if m > MAX_TERMS:
+        raise InputError(f"{source}: {k} colours at transport order {order} would need {m} "
+                         f"channels, more than {MAX_TERMS}")
+    return m
+
+
 def transport_terms(k: int, order: int) -> list[tuple[int, ...]]:
     """Palette indices multiplied in each transport term, in basis order.
 

@@ -23,6 +23,7 @@ import contextlib
 import itertools
 import json
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -45,7 +46,7 @@ from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .polytope import Polytope
 from .registry import validate_method
 from .render import palette_swatch
-from .stack import FORMAT, WeightStack, check_dtype, check_names
+from .stack import FORMAT, MAX_FPS, WeightStack, check_basis, check_dtype, check_meta, check_names
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 #: Megapixels of one task: a whole image, or a run of frames of one video.
@@ -115,17 +116,21 @@ def _probe(path: Path, name: str, max_pixels: int) -> Source:
     try:
         with av.open(str(path)) as container:
             stream = container.streams.video[0]
+            height, width = stream.codec_context.height, stream.codec_context.width
+            if width * height > max_pixels:
+                raise InputError(f"video {path} is {width}x{height}, more than --max-pixels "
+                                 f"{max_pixels} allows")
+            if width * height == 0:
+                raise InputError(f"video {path} declares frames of {width}x{height} pixels")
             frames = stream.frames or sum(1 for _ in container.decode(video=0))
             fps = float(stream.average_rate or stream.guessed_rate or 25)
-            height, width = stream.codec_context.height, stream.codec_context.width
             keyframes = _keyframes(container, stream)
-    except (av.FFmpegError, IndexError, OSError) as exc:
+    except (av.FFmpegError, IndexError, OSError, ValueError, ZeroDivisionError) as exc:
         raise InputError(f"cannot read video {path}: {exc}") from None
-    if width * height > max_pixels:
-        raise InputError(f"video {path} is {width}x{height}, more than --max-pixels "
-                         f"{max_pixels} allows")
     if frames < 1:
         raise InputError(f"video {path} has no frames")
+    if not 0 < fps <= MAX_FPS:
+        raise InputError(f"video {path} declares {fps} frames a second")
     return Source(str(path), name, frames, height, width, fps, keyframes)
 
 
@@ -153,14 +158,26 @@ def read_frames(source: Source, start: int = 0, stop: int | None = None,
         return
     import av
 
-    with av.open(source.path) as container:
-        stream = container.streams.video[0]
-        for index, frame in _indexed_frames(container, stream, start):
-            if index >= stop:
-                break
-            if index >= start:
-                pixels = frame.to_ndarray(format="rgb24")
-                yield pixels, np.ones(pixels.shape[:2], bool)
+    index, read = start, 0
+    try:
+        with av.open(source.path) as container:
+            stream = container.streams.video[0]
+            for index, frame in _indexed_frames(container, stream, start):
+                if index >= stop:
+                    break
+                if (frame.height, frame.width) != (source.height, source.width):
+                    raise InputError(f"video {source.path}: frame {index} is {frame.width}x"
+                                     f"{frame.height}, not {source.width}x{source.height} "
+                                     "like the video")
+                if index >= start:
+                    pixels = frame.to_ndarray(format="rgb24")
+                    read += 1
+                    yield pixels, np.ones(pixels.shape[:2], bool)
+    except (av.FFmpegError, OSError, ValueError) as exc:
+        raise InputError(f"cannot decode video {source.path} at frame {index}: {exc}") from None
+    if read < stop - start:
+        raise InputError(f"video {source.path} ends after frame {start + read - 1}, before "
+                         f"the {source.frames} frames it declared")
 
 
 def _indexed_frames(container, stream, start: int):
@@ -687,10 +704,12 @@ def write_zarr_stack(stack: WeightStack, path: str | os.PathLike, force: bool = 
 
 
 class LazyWeights(Sequence):
-    """The per-frame weights of a Zarr stack, read one frame at a time."""
+    """The per-frame weights of a Zarr stack, read one frame at a time; a frame that cannot
+    be decoded (a damaged chunk) or holds NaN is an InputError naming it."""
 
-    def __init__(self, store, sources: list[tuple[str, int | None]], path: str):
-        self.store, self.sources, self.path = store, sources, path
+    def __init__(self, store, sources: list[tuple[str, int | None]], names: list[str],
+                 path: str):
+        self.store, self.sources, self.names, self.path = store, sources, names, path
 
     def __len__(self) -> int:
         return len(self.sources)
@@ -699,15 +718,27 @@ class LazyWeights(Sequence):
         if isinstance(i, slice):
             return [self[j] for j in range(*i.indices(len(self)))]
         array, frame = self.sources[i]
-        data = self.store[array]
-        weights = data[frame] if frame is not None else data[...]
+        try:
+            data = self.store[array]
+            weights = data[frame] if frame is not None else data[...]
+        except Exception as exc:  # noqa: BLE001 - codecs raise many kinds on damaged chunks
+            raise InputError(f"{self.path}: weights of {self.names[i]} cannot be read: "
+                             f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                             ) from None
         if not np.isfinite(weights).all():
-            raise InputError(f"{self.path}: weights of frame {i} hold NaN or infinity")
+            raise InputError(f"{self.path}: weights of {self.names[i]} hold NaN or infinity")
         return weights
 
 
-def read_zarr_stack(path: str) -> WeightStack:
+_ARRAY_NAME = re.compile(r"^weights_\d{4,}$")
+
+
+def read_zarr_stack(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> WeightStack:
     """Read and validate a Zarr weight stack; its weights are read lazily, frame by frame.
+
+    Everything is checked before a weight is read: the attributes' types, array names
+    (plain names inside the store), each array's declared shape and chunking against the
+    names and ``max_pixels`` a frame, every chunk present, and every frame complete.
 
     Raises
     ------
@@ -721,38 +752,61 @@ def read_zarr_stack(path: str) -> WeightStack:
         raise InputError(f"{path} is incomplete: finish it with palette-decompose ... --resume")
     try:
         store = zarr.open_group(path, mode="r")
-    except (FileNotFoundError, zarr.errors.GroupNotFoundError, ValueError, OSError) as exc:
-        raise InputError(f"{path} is not a readable Zarr weight stack: {exc}") from None
-    attrs = dict(store.attrs)
+        attrs = dict(store.attrs)
+    except Exception as exc:  # noqa: BLE001 - zarr and json raise many kinds
+        raise InputError(f"{path} is not a readable Zarr weight stack: "
+                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                         ) from None
     if attrs.get("format") != FORMAT:
         raise InputError(f"{path}: format is {attrs.get('format')!r}, expected {FORMAT!r}")
     try:
-        palette = np.asarray(attrs["palette"], np.float32)
-        names = list(attrs["names"])
-        arrays = dict(attrs["arrays"])
+        palette = np.asarray(attrs["palette"], np.float64)
+        names, arrays = attrs["names"], attrs["arrays"]
         meta = json.loads(attrs["meta"])
         basis = Basis.parse(attrs["basis"])
-    except (KeyError, TypeError, ValueError) as exc:
+        order = attrs.get("order", 1)
+    except (KeyError, TypeError, ValueError, RecursionError) as exc:
         raise InputError(f"{path}: malformed attributes: {exc}") from None
-    if (palette.ndim != 2 or palette.shape[1:] != (3,)
+    if (palette.ndim != 2 or palette.shape[1:] != (3,) or len(palette) == 0
             or not np.all((palette >= 0) & (palette <= 1))):
         raise InputError(f"{path}: palette must have shape (K, 3) with values in [0, 1]")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"{path}: names must be a list of strings")
+    if not isinstance(arrays, dict) or not all(
+            isinstance(a, str) and _ARRAY_NAME.match(a) for a in arrays.values()):
+        raise InputError(f"{path}: arrays must map sources to arrays named weights_NNNN")
     check_names(names, path)
-    if not store["complete"][...].all():
+    m = check_basis(len(palette), basis, order, path)
+    check_meta(meta, names, path)
+    try:
+        complete = store["complete"]
+        done = complete.shape == (len(names),) and bool(complete[...].all())
+    except Exception:  # noqa: BLE001 - missing, or not a bool array
+        done = False
+    if not done:
         raise InputError(f"{path} is incomplete: finish it with palette-decompose ... --resume")
     frames = []
-    for source, array in arrays.items():
-        data = store[array]
-        if data.ndim == 4:
-            frames += [(array, i) for i in range(data.shape[0])]
-        else:
-            frames.append((array, None))
-        if data.shape[-1] != n_terms(len(palette), basis) or data.dtype not in (np.float32,
-                                                                               np.float16):
-            raise InputError(f"{path}: weights of {source} must be float32/float16 with "
-                             f"{len(palette)} channels, got {data.dtype} {data.shape}")
+    for source, name in arrays.items():
+        try:
+            data = store[name]
+        except KeyError:
+            raise InputError(f"{path}: weights of {source} ({name}) are missing") from None
+        video = data.ndim == 4
+        shape = data.shape[1:] if video else data.shape
+        pixels = shape[0] * shape[1] if len(shape) == 3 else 0
+        if (len(shape) != 3 or shape[-1] != m or not 0 < pixels <= max_pixels
+                or data.dtype not in (np.float32, np.float16)
+                or (video and not 0 < data.shape[0] <= len(names))
+                or data.chunks != ((1, *shape) if video else shape)):
+            raise InputError(f"{path}: weights of {source} must be float32/float16 frames of at "
+                             f"most {max_pixels} pixels and {m} channels, one chunk a frame, "
+                             f"got {data.dtype} {data.shape} in chunks {data.chunks}")
+        missing = data.nchunks - data.nchunks_initialized
+        if missing:
+            raise InputError(f"{path}: weights of {source} miss {missing} of {data.nchunks} "
+                             "chunks")
+        frames += [(name, i) for i in range(data.shape[0])] if video else [(name, None)]
     if len(frames) != len(names):
         raise InputError(f"{path}: {len(names)} names but {len(frames)} weight frames")
-    return WeightStack(palette, LazyWeights(store, frames, path), names, attrs.get("method", "mvc"),
-                       basis, 1, meta=meta)
-
+    return WeightStack(palette.astype(np.float32), LazyWeights(store, frames, names, path),
+                       names, str(attrs.get("method", "mvc")), basis, order, meta=meta)

@@ -15,7 +15,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from .basis import Basis, n_terms
+from .basis import Basis, check_basis
 from .errors import InputError
 
 FORMAT = "palette-weights/1"
@@ -125,17 +125,15 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
         order = npz.array("order", "iu")
-        if order.ndim != 0 or order < 1:
+        if order.ndim != 0:
             raise InputError(f"{path}: order must be an integer >= 1, got {order}")
         order = int(order)
-        if basis == Basis.ADDITIVE and order != 1:
-            raise InputError(f"{path}: an additive stack has order 1, got {order}")
+        m = check_basis(len(palette), basis, order, str(path))
         names = npz.array("names", "U")
         if names.ndim != 1:
             raise InputError(f"{path}: names must be a 1-D array of strings")
         names = names.tolist()
         check_names(names, str(path))
-        m = n_terms(len(palette), basis, order)
         if "weights" in npz:
             stacked = npz.array("weights", "f")
             if stacked.ndim != 4:
@@ -160,8 +158,7 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
             if hull_faces.size and (hull_faces.min() < 0 or hull_faces.max() >= len(palette)):
                 raise InputError(f"{path}: hull_faces index outside the palette")
         meta = npz.json("meta") if "meta" in npz else {}
-        if not isinstance(meta, dict):
-            raise InputError(f"{path}: meta must be a JSON object")
+        check_meta(meta, names, str(path))
         method = npz.text("method")
     return WeightStack(palette.astype(np.float32), weights, names, method, basis, order,
                        hull_faces.astype(np.int32), meta)
@@ -177,6 +174,29 @@ def check_names(names: list[str], source: str) -> None:
                 or "\\" in name or name in seen):
             raise InputError(f"{source}: image name {name!r} is not a distinct relative path")
         seen.add(name)
+
+
+#: Fastest frame rate a stack's video may declare (``meta["videos"]``).
+MAX_FPS = 1000.0
+
+
+def check_meta(meta, names: list[str], source: str) -> None:
+    """InputError unless ``meta`` is a JSON object whose ``videos`` (if any) maps videos of
+    the stack (names ``clip.mp4`` of frames ``clip.mp4#000123``) to frame rates in
+    (0, ``MAX_FPS``]: recolouring encodes them."""
+    if not isinstance(meta, dict):
+        raise InputError(f"{source}: meta must be a JSON object")
+    videos = meta.get("videos", {})
+    if not isinstance(videos, dict):
+        raise InputError(f"{source}: meta videos must map videos to frame rates")
+    sources = {name.split("#")[0] for name in names if "#" in name}
+    for video, fps in videos.items():
+        if video not in sources:
+            raise InputError(f"{source}: meta videos names {video!r}, which has no frames")
+        if (isinstance(fps, bool) or not isinstance(fps, (int, float))
+                or not 0 < fps <= MAX_FPS):
+            raise InputError(f"{source}: frame rate of {video} must be in (0, {MAX_FPS:g}], "
+                             f"got {fps!r}")
 
 
 class NpzReader:
