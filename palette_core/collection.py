@@ -174,7 +174,8 @@ def read_frames(source: Source, start: int = 0, stop: int | None = None,
                     read += 1
                     yield pixels, np.ones(pixels.shape[:2], bool)
     except (av.FFmpegError, OSError, ValueError) as exc:
-        raise InputError(f"cannot decode video {source.path} at frame {index}: {exc}") from None
+        raise InputError(f"cannot decode video {source.path} at frame {start + read}: "
+                         f"{exc}") from None
     if read < stop - start:
         raise InputError(f"video {source.path} ends after frame {start + read - 1}, before "
                          f"the {source.frames} frames it declared")

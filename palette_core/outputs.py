@@ -91,11 +91,13 @@ def atomic_outputs(force: bool = False):
         at publish time.
     """
     staged: dict[Path, Path] = {}
+    created: list[Path] = []  # folders made for the outputs, removed again on error
 
     def stage(final: str | os.PathLike) -> Path:
         final = Path(final)
         if final in staged:
             raise InputError(f"two outputs would be written to {final}: give them distinct names")
+        created.extend(reversed([p for p in final.parents if not p.exists()]))
         final.parent.mkdir(parents=True, exist_ok=True)
         sweep_stale(final.parent)
         fd, tmp = tempfile.mkstemp(prefix=_temp_name(final.stem), suffix=".tmp" + final.suffix,
@@ -108,9 +110,13 @@ def atomic_outputs(force: bool = False):
     try:
         yield stage
         _publish_files(staged, force)
+        created.clear()
     finally:
         for tmp in staged.values():
             tmp.unlink(missing_ok=True)
+        for folder in reversed(created):
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty
 
 
 def _publish_files(staged: dict[Path, Path], force: bool) -> None:

@@ -175,3 +175,140 @@ def test_harmonize_never_replaces_a_users_folder(photo_dir, tmp_path, capsys):
     expect_error(harmonize, [str(tmp_path / "w.npz"), "--template", "triad", "-o", str(folder),
                              "--force"], "is not a weight stack store", capsys)
     assert (folder / "thesis.txt").exists()
+
+
+# --- crafted and damaged stores and videos: one line, exit 2 ---------------------------------
+
+def _store(tmp_path, names=("a.png", "b.png"), size=(3, 4), meta=None, basis="additive",
+           order=1):
+    """A valid Zarr stack written by the package, to be damaged by the test."""
+    from palette_core.basis import Basis, n_terms
+    from palette_core.collection import write_zarr_stack
+    from palette_core.stack import WeightStack
+
+    m = n_terms(4, Basis(basis), order)
+    weights = [np.full((*size, m), 1 / m, np.float32) for _ in names]
+    stack = WeightStack(np.eye(4, 3, dtype=np.float32), weights, list(names), "mvc",
+                        Basis(basis), order, meta=meta or {})
+    write_zarr_stack(stack, tmp_path / "w.zarr")
+    return tmp_path / "w.zarr"
+
+
+def _edit(path, change):
+    """Rewrite the zarr.json at ``path`` through ``change(dict)``."""
+    data = json.loads((path / "zarr.json").read_text())
+    change(data)
+    (path / "zarr.json").write_text(json.dumps(data))
+
+
+def _attrs(**values):
+    return lambda data: data["attributes"].update(values)
+
+
+def _chunk(store, array="weights_0000"):
+    return next(p for p in (store / array).rglob("*") if p.is_file() and p.name != "zarr.json")
+
+
+CRAFTED = {
+    "array outside": (lambda s: _edit(s, _attrs(arrays={"a.png": "../x/weights_0000",
+                                                        "b.png": "weights_0001"})),
+                      "arrays must map"),
+    "no complete marker": (lambda s: __import__("shutil").rmtree(s / "complete"), "incomplete"),
+    "missing chunk": (lambda s: _chunk(s).unlink(), "miss 1 of 1 chunks"),
+    "terapixel": (lambda s: _edit(s / "weights_0000", lambda d: d.update(
+        shape=[1_000_000, 1_000_000, 4])), "at most"),
+    "meta a list": (lambda s: _edit(s, _attrs(meta="[]")), "meta must be a JSON object"),
+    "meta deep": (lambda s: _edit(s, _attrs(meta="[" * 100_000 + "]" * 100_000)),
+                  "malformed attributes"),
+    "attributes deep": (lambda s: (s / "zarr.json").write_text(
+        '{"zarr_format": 3, "node_type": "group", "attributes": {"x": '
+        + "[" * 100_000 + "]" * 100_000 + "}}"), "not a readable Zarr weight stack"),
+    "order 1000": (lambda s: _edit(s, _attrs(basis="transport", order=1000)), "channels"),
+    "names not strings": (lambda s: _edit(s, _attrs(names=[1, 2])), "list of strings"),
+}
+
+
+@pytest.mark.parametrize("case", CRAFTED, ids=list(CRAFTED))
+def test_crafted_stores_are_refused_before_anything_is_read(tmp_path, capsys, case):
+    damage, message = CRAFTED[case]
+    store = _store(tmp_path)
+    damage(store)
+    expect_error(recolor.main, [str(store), "--palette", str(_palette(tmp_path)), "-o",
+                                str(tmp_path / "out")], message, capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def _palette(tmp_path):
+    from palette_core.palette_file import write_palette_json
+
+    write_palette_json(tmp_path / "p.json", np.eye(4, 3)[::-1])
+    return tmp_path / "p.json"
+
+
+def test_a_truncated_chunk_names_the_image(tmp_path, capsys):
+    store = _store(tmp_path)
+    chunk = _chunk(store, "weights_0001")
+    chunk.write_bytes(chunk.read_bytes()[:7])
+    expect_error(recolor.main, [str(store), "--palette", str(_palette(tmp_path)), "-o",
+                                str(tmp_path / "out")], "weights of b.png cannot be read", capsys)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("fps, size, message", [(float("nan"), (2, 2), "frame rate of clip.mp4"),
+                                                (1e9, (2, 2), "frame rate of clip.mp4"),
+                                                (12, (1, 1), "at least 2x2")])
+def test_video_frame_rates_and_sizes(tmp_path, capsys, fps, size, message):
+    names = [f"clip.mp4#{i:06d}" for i in range(3)]
+    store = _store(tmp_path, names, size, meta={"videos": {"clip.mp4": 12}})
+    _edit(store, _attrs(meta=json.dumps({"videos": {"clip.mp4": fps}})))
+    expect_error(recolor.main, [str(store), "--palette", str(_palette(tmp_path)), "-o",
+                                str(tmp_path / "out")], message, capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_transport_stack_round_trips_through_a_store(tmp_path, capsys):
+    """palette-harmonize writes a transport stack into a store that reads back."""
+    from harmonize.cli import main as harmonize
+    from palette_core.basis import Basis
+    from palette_core.stack import WeightStack, write_stack
+
+    rng = np.random.default_rng(3)
+    weights = [rng.random((3, 4, 15)).astype(np.float32)]
+    write_stack(WeightStack(np.array([[.9, .1, .1], [.1, .8, .2], [.1, .2, .9], [.9, .9, .2]],
+                                     np.float32), weights, ["a.png"], "simulated",
+                            Basis.TRANSPORT, 2), tmp_path / "t.npz")
+    assert harmonize([str(tmp_path / "t.npz"), "--template", "triad", "-o",
+                      str(tmp_path / "t.zarr")]) == 0
+    back = read_stack(tmp_path / "t.zarr")
+    assert back.basis == Basis.TRANSPORT and back.order == 2
+    assert np.array_equal(back.weights[0], weights[0])
+
+
+def _mjpeg_with_a_giant_frame(path, frames=4):
+    """An MJPEG AVI whose third frame's header claims 65520 x 65520 pixels (the container
+    declares the frame count, so the first decode is pass 1's)."""
+    with av.open(str(path), mode="w") as container:
+        stream = container.add_stream("mjpeg", rate=12)
+        stream.width, stream.height, stream.pix_fmt = 32, 16, "yuvj420p"
+        for i in range(frames):
+            image = np.full((16, 32, 3), 40 * i, np.uint8)
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        container.mux(stream.encode())
+    data = bytearray(path.read_bytes())
+    sof = [i for i in range(len(data) - 1) if data[i:i + 2] == b"\xff\xc0"][2]
+    data[sof + 5:sof + 9] = (65520).to_bytes(2, "big") * 2
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p, rng: p.write_bytes(make_video(p, rng, frames=12).read_bytes()[:1500]),
+     "clip.mp4"),
+    (lambda p, rng: _mjpeg_with_a_giant_frame(p), "cannot decode video"),
+])
+def test_damaged_videos_are_one_line(tmp_path, rng, capsys, make, message):
+    clip = tmp_path / ("clip.mp4" if message == "clip.mp4" else "clip.avi")
+    make(clip, rng)
+    assert decompose_cli.main([str(clip), "-o", str(tmp_path / "w.zarr")]) == 2
+    err = capsys.readouterr().err  # the error may follow pass 1's progress bar
+    assert message in err.strip().splitlines()[-1] and "Traceback" not in err
+    assert not any(p.name.startswith(("w.", ".w.")) for p in tmp_path.iterdir())
