@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from palette_core.errors import InputError
+
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0  # low-discrepancy step for elevations
 SPLIT_PHASES = {"train": 0.0, "val": 1.0 / 3.0, "test": 2.0 / 3.0}  # views of splits interleave
 
@@ -35,6 +37,10 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     return pose
 
 
+#: Most pixels of one camera's image: a file from elsewhere cannot size a render beyond it.
+MAX_CAMERA_PIXELS = 1 << 26
+
+
 @dataclass
 class Intrinsics:
     """Pinhole camera shared by all frames: focal lengths and principal point in pixels."""
@@ -45,6 +51,30 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
+
+    @classmethod
+    def from_dict(cls, data, source: str) -> Intrinsics:
+        """The camera of a checkpoint's ``intrinsics``: whole positive sizes of at most
+        ``MAX_CAMERA_PIXELS``, finite positive focal lengths, a finite principal point.
+
+        Raises
+        ------
+        InputError
+            Naming ``source``.
+        """
+        names = ("width", "height", "fx", "fy", "cx", "cy")
+        if not isinstance(data, dict) or set(data) != set(names):
+            raise InputError(f"{source}: intrinsics must hold {', '.join(names)}")
+        values = [data[n] for n in names]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                   and math.isfinite(v) for v in values):
+            raise InputError(f"{source}: intrinsics must be finite numbers")
+        width, height, fx, fy, cx, cy = values
+        if (not isinstance(width, int) or not isinstance(height, int) or width < 1
+                or height < 1 or width * height > MAX_CAMERA_PIXELS or fx <= 0 or fy <= 0):
+            raise InputError(f"{source}: a camera of {width}x{height} pixels and focal lengths "
+                             f"{fx}, {fy} (at most {MAX_CAMERA_PIXELS} pixels, focal > 0)")
+        return cls(width, height, float(fx), float(fy), float(cx), float(cy))
 
 
 def focal_length(width: int, fov_x: float) -> float:

@@ -28,7 +28,9 @@ from .simulation import (
 PROG = "nerf-stage"
 
 
-def build_parser() -> ArgumentParser:
+def build_parser(train_defaults: TrainConfig | None = None) -> ArgumentParser:
+    """The parser of every command; ``train``'s flags default to ``train_defaults`` (the
+    dataclass's defaults when None)."""
     parser = ArgumentParser(prog=PROG, description="NeRF stage of the palette toolkit.")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                      parser_class=ArgumentParser)
@@ -54,13 +56,13 @@ def build_parser() -> ArgumentParser:
                           "transforms.json, for palette-decompose images/ and nerf-stage train)")
     sim.add_argument("--force", action="store_true", help="replace a non-empty OUTDIR")
     sim.set_defaults(run=_simulate)
-    _add_train(commands)
+    _add_train(commands, train_defaults or TrainConfig())
     _add_render(commands)
     _add_eval(commands)
     return parser
 
 
-def _add_train(commands) -> None:
+def _add_train(commands, defaults: TrainConfig) -> None:
     train = commands.add_parser(
         "train", help="train a weight NeRF on a dataset and its weight stack",
         description="Train a NeRF whose colour head outputs the weight stack's M channels "
@@ -75,7 +77,7 @@ def _add_train(commands) -> None:
                             "DATADIR and nerf-stage simulate put it)")
     train.add_argument("-o", "--output", metavar="RUNDIR", default=None,
                        help="run folder (default: DATADIR-BACKBONE beside DATADIR)")
-    add_config_arguments(train, TrainConfig.defaults())
+    add_config_arguments(train, defaults)
     again = train.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue RUNDIR's checkpoint")
     again.add_argument("--force", action="store_true", help="start RUNDIR afresh")
@@ -130,7 +132,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _dispatch(argv) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    # Only train reads CONFIG_ENV: a bad file there must not break the other commands.
+    defaults = TrainConfig.defaults() if argv[:1] == ["train"] else None
+    args = build_parser(defaults).parse_args(argv)
     return args.run(args)
 
 

@@ -23,6 +23,10 @@ CONFIG_ENV = "NERF_STAGE_CONFIG"
 #: How many times finer than the field's grid baked renders read the colour part by default
 #: (``render --baked``): within 0.5 dB of the network on both simulated scenes (README).
 BAKE_FACTOR = 4
+#: Most voxels of a grid (2^25: 320^3), and most iterations of a stage: a config from
+#: elsewhere cannot make training allocate or run without end.
+MAX_VOXELS = 1 << 25
+MAX_ITERS = 10_000_000
 
 
 class Backbone(StrEnum):
@@ -76,10 +80,13 @@ class GridConfig:
     def __post_init__(self):
         if not isinstance(self.deferred, bool):
             raise InputError(f"deferred must be true or false, got {self.deferred!r}")
-        _at_least(self, 1, "voxels", "features", "head_layers", "occupancy_every")
-        _at_least(self, 0, "warmup_iters")
+        _integers(self, 1, MAX_VOXELS, "voxels")
+        _integers(self, 1, 256, "features")
+        _integers(self, 1, 16, "head_layers")
+        _integers(self, 1, MAX_ITERS, "occupancy_every")
+        _integers(self, 0, MAX_ITERS, "warmup_iters")
         if self.view_frequencies is not None:
-            _at_least(self, 0, "view_frequencies")
+            _integers(self, 0, 16, "view_frequencies")
         _positive(self, "lr", "network_lr", "step_voxels", "render_step_voxels")
 
 
@@ -93,7 +100,7 @@ class MLPConfig:
     """Adam learning rate."""
 
     def __post_init__(self):
-        _at_least(self, 1, "samples")
+        _integers(self, 1, 4096, "samples")
         _positive(self, "network_lr")
 
 
@@ -150,18 +157,28 @@ class TrainConfig:
     def __post_init__(self):
         self.backbone = _member(Backbone, self.backbone, "backbone")
         self.strategy = _member(Strategy, self.strategy, "strategy")
-        self.background = tuple(float(c) for c in self.background)
         _at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight")
         _positive(self, "lr_decay")
-        _at_least(self, 0, "pretrain_iters", "finetune_iters")
-        _at_least(self, 1, "batch_rays", "supersampling", "head_width", "occupancy_voxels",
-                  "checkpoint_every")
+        _integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")
+        _integers(self, 1, 1 << 20, "batch_rays")
+        _integers(self, 1, 8, "supersampling")
+        _integers(self, 1, 4096, "head_width")
+        _integers(self, 1, MAX_VOXELS, "occupancy_voxels")
+        _integers(self, 1, MAX_ITERS, "checkpoint_every")
+        _integers(self, 0, (1 << 63) - 1, "seed")
         if self.pretrain_iters + self.finetune_iters == 0:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
         if self.strategy == Strategy.TWO_STAGE and self.finetune_iters == 0:
             raise InputError("the two-stage strategy needs finetune_iters > 0")
-        if len(self.background) != 3 or not all(0 <= c <= 1 for c in self.background):
-            raise InputError(f"background must be three numbers in [0, 1], got {self.background}")
+        background = self.background
+        if (not isinstance(background, (tuple, list)) or len(background) != 3
+                or not all(_is_number(c) and 0 <= c <= 1 for c in background)):
+            raise InputError(f"background must be three numbers in [0, 1], got {background!r}")
+        self.background = tuple(float(c) for c in background)
+        for name in ("grid", "mlp"):
+            kind = _NESTED[name]
+            if not isinstance(getattr(self, name), kind):
+                raise InputError(f"{name} must be {kind.__name__} settings")
 
     @property
     def total_iters(self) -> int:
@@ -225,7 +242,11 @@ class TrainConfig:
             raise InputError(f"{CONFIG_ENV}={path}: expected an object of config fields")
         base = cls().to_dict()
         for group in _NESTED:
-            data[group] = {**base[group], **data.get(group, {})}
+            section = data.get(group, {})
+            if not isinstance(section, dict):
+                raise InputError(f"{CONFIG_ENV}={path}: {group} must be an object of "
+                                 f"{_NESTED[group].__name__} fields, got {section!r}")
+            data[group] = {**base[group], **section}
         return cls.from_dict({**base, **data}, f"{CONFIG_ENV}={path}")
 
     @classmethod
@@ -275,22 +296,28 @@ def _member(enum: type[StrEnum], value, name: str):
         raise InputError(f"{name} must be one of {', '.join(enum)}, got {value!r}") from None
 
 
-def _at_least(config, low: int, *names: str) -> None:
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _integers(config, low: int, high: int, *names: str) -> None:
+    """InputError unless each field is an integer in [low, high] (limits keep a config from
+    elsewhere from asking for terabytes)."""
     for name in names:
         value = getattr(config, name)
-        if not isinstance(value, int) or value < low:
-            raise InputError(f"{name} must be an integer >= {low}, got {value!r}")
+        if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+            raise InputError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
 
 
 def _at_least_zero(config, *names: str) -> None:
     for name in names:
         value = getattr(config, name)
-        if not (isinstance(value, (int, float)) and 0 <= value < math.inf):
+        if not (_is_number(value) and 0 <= value < math.inf):
             raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
 
 
 def _positive(config, *names: str) -> None:
     for name in names:
         value = getattr(config, name)
-        if not (isinstance(value, (int, float)) and 0 < value < math.inf):
+        if not (_is_number(value) and 0 < value < math.inf):
             raise InputError(f"{name} must be a finite number > 0, got {value!r}")

@@ -15,13 +15,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from palette_core.basis import Basis, basis_terms
+from palette_core.basis import Basis, basis_terms, check_basis
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs
 
 from .cameras import Intrinsics, camera_rays
 from .config import BAKE_FACTOR, TrainConfig
-from .fields import Field, RaySampling, make_field
+from .fields import RGB, Field, RaySampling, make_field
 from .rendering import OccupancyGrid, SceneBox, render_rays
 
 CHECKPOINT = "checkpoint.pt"
@@ -246,16 +246,28 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
     state = read_checkpoint(path)
     try:
         config = TrainConfig.from_dict(state["config"], str(path))
-        box = SceneBox(np.array(state["box"]["centre"]), np.array(state["box"]["half"]))
-        extent = torch.as_tensor(box.extent, dtype=torch.float32)
+        intrinsics = Intrinsics.from_dict(state["intrinsics"], str(path))
+        palette = np.array(state["palette"], np.float64)
+        if (palette.ndim != 2 or palette.shape[1:] != (3,) or len(palette) == 0
+                or not np.all((palette >= 0) & (palette <= 1))):
+            raise InputError(f"{path}: palette must have shape (K, 3) with values in [0, 1]")
+        basis = Basis.parse(state["basis"])
+        channels = check_basis(len(palette), basis, state["order"], str(path))
         output = state["output"]
+        if output["kind"] != RGB and output["channels"] != channels:
+            raise InputError(f"{path}: the field outputs {output['channels']} channels, the "
+                             f"basis has {channels}")
+        box = SceneBox(np.array(state["box"]["centre"], np.float64),
+                       np.array(state["box"]["half"], np.float64))
+        if (box.centre.shape != (3,) or box.half.shape != (3,) or not np.isfinite(box.centre).all()
+                or not (np.isfinite(box.half) & (box.half > 0)).all()):
+            raise InputError(f"{path}: the scene box must be finite with positive extent")
+        extent = torch.as_tensor(box.extent, dtype=torch.float32)
         field = make_field(config, extent, output["kind"], output["channels"])
         field.load_state_dict(state["field"])
         occupancy = OccupancyGrid(extent, config.occupancy_voxels)
         occupancy.load_state_dict(state["occupancy"])
-        basis = Basis.parse(state["basis"])
-        return Run(config, field.to(device), occupancy.to(device), box,
-                   Intrinsics(**state["intrinsics"]), np.array(state["palette"], np.float64),
+        return Run(config, field.to(device), occupancy.to(device), box, intrinsics, palette,
                    basis, int(state["order"]), run_record(state))
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise InputError(f"checkpoint {path} is malformed: {str(exc).splitlines()[0]}") from None

@@ -272,7 +272,7 @@ def test_full_disk_leaves_nothing(tmp_path, capsys, monkeypatch):
     out = tmp_path / "out"
     expect_error(recolor.main, [str(stack), "--palette", str(palette), "-o", str(out)],
                  "No space left on device", capsys)
-    assert list(out.iterdir()) == []
+    assert not out.exists()  # nothing, not even the folder made for the outputs
 
 
 def test_a_file_created_meanwhile_is_kept(tmp_path):
@@ -365,3 +365,55 @@ def test_outputs_respect_the_umask(photo_dir, tmp_path):
     assert (tmp_path / "o" / "w.npz").stat().st_mode & 0o777 == 0o640
     assert (tmp_path / "layers" / "a_w0.png").stat().st_mode & 0o777 == 0o640
     assert (tmp_path / "sim").stat().st_mode & 0o777 == 0o750
+
+
+# --- NERF_STAGE_CONFIG and run folders from elsewhere ---------------------------------------
+
+@pytest.mark.parametrize("config, message", [
+    ({"grid": [1, 2]}, "grid must be an object"),
+    ({"grid": {"voxels": "many"}}, "voxels must be an integer"),
+    ({"seed": 1.5}, "seed must be an integer"),
+    ({"grid": {"voxels": 10**12}}, "voxels must be an integer in [1, 33554432]"),
+    ({"supersampling": 100_000}, "supersampling must be an integer in [1, 8]"),
+    ({"batch_rays": True}, "batch_rays must be an integer"),
+    ({"background": ["white", 0, 0]}, "background must be three numbers"),
+    ({"lr_decay": "0.3"}, "lr_decay must be a finite number"),
+])
+def test_bad_training_configs_are_one_line(tmp_path, capsys, monkeypatch, config, message):
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(config))
+    monkeypatch.setenv("NERF_STAGE_CONFIG", str(path))
+    expect_error(nerf_stage, ["train", str(tmp_path)], message, capsys)
+    # only train reads it: the other commands are not broken by it
+    expect_error(nerf_stage, ["simulate", "no-such-scene", str(tmp_path / "o")],
+                 "no-such-scene", capsys)
+
+
+def _crafted_run(scene_run, tmp_path, change):
+    import shutil
+
+    import torch
+
+    run = tmp_path / "run"
+    shutil.copytree(scene_run, run)
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    change(state)
+    torch.save(state, run / "checkpoint.pt")
+    return run
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda s: s["intrinsics"].update(width=10**6, height=10**6), "a camera of 1000000x1000000"),
+    (lambda s: s["intrinsics"].update(fx=float("nan")), "finite numbers"),
+    (lambda s: s.update(basis="transport", order=1000), "channels, more than 4096"),
+    (lambda s: s.update(palette=[[2.0, 0.0, 0.0]] * 4), "palette must have shape"),
+    (lambda s: s["box"].update(half=[0.0, 1.0, 1.0]), "positive extent"),
+    (lambda s: s["config"]["grid"].update(voxels=10**12), "voxels must be an integer"),
+])
+def test_crafted_run_folders_are_refused_before_allocating(scene_run, tmp_path, capsys, change,
+                                                           message):
+    pytest.importorskip("torch")
+    run = _crafted_run(scene_run, tmp_path, change)
+    expect_error(nerf_stage, ["render", str(run), "--orbit", "2", "-o", str(tmp_path / "out")],
+                 message, capsys)
+    assert not (tmp_path / "out").exists()
