@@ -77,6 +77,9 @@ def _add_train(commands, defaults: TrainConfig) -> None:
                             "DATADIR and nerf-stage simulate put it)")
     train.add_argument("-o", "--output", metavar="RUNDIR", default=None,
                        help="run folder (default: DATADIR-BACKBONE beside DATADIR)")
+    train.add_argument("--frames-outside", action="store_true",
+                       help="read frames whose file_path lies outside DATADIR (absolute, or "
+                            "climbing out with ..); refused by default")
     add_config_arguments(train, defaults)
     again = train.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue RUNDIR's checkpoint")
@@ -167,7 +170,7 @@ def _train(args) -> int:
     config = config_from_args(TrainConfig, args)
     data = Path(args.data).resolve()
     rundir = Path(args.output or data.with_name(f"{data.name}-{config.backbone}"))
-    dataset = load_dataset(data, config.background)
+    dataset = load_dataset(data, config.background, args.frames_outside)
     weights = Path(args.weights) if args.weights else data / DEFAULT_STACK
     if args.weights is None and not weights.is_file():
         raise InputError(f"{weights} does not exist: make it with palette-decompose images/ "
@@ -206,7 +209,8 @@ def _eval(args) -> int:
     if args.baked is not None:
         run = run.baked(args.baked)
     edit = None if args.palette is None else read_palette_json(args.palette, k=len(run.palette))
-    dataset = load_dataset(run.record.dataset, run.config.background)
+    dataset = load_dataset(run.record.dataset, run.config.background,
+                           run.record.frames_outside)
     scores = evaluate(run, dataset, edit)
     rec = scores["reconstruction"]
     what = "RGB NeRF" if run.field.kind == RGB else "RGB through the weights"

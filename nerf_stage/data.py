@@ -53,6 +53,8 @@ class Dataset:
     background : (3,) float64
     layout : str
         ``blender`` or ``nerfstudio``: the files it was read from.
+    frames_outside : bool
+        Frames were allowed outside ``root`` (``load_dataset``).
     """
 
     root: Path
@@ -64,34 +66,40 @@ class Dataset:
     alpha: np.ndarray
     background: np.ndarray
     layout: str = "blender"
+    frames_outside: bool = False
 
     def indices(self, split: str) -> np.ndarray:
         """Frame indices of one split."""
         return np.array([i for i, s in enumerate(self.splits) if s == split], np.int64)
 
 
-def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> Dataset:
+def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
+                 frames_outside: bool = False) -> Dataset:
     """Read a Blender or nerfstudio dataset folder.
+
+    A frame's ``file_path`` must lie inside ``root`` (neither absolute nor climbing out
+    with ``..``) unless ``frames_outside``: a transforms file from elsewhere cannot make
+    training read files it does not name in its own folder.
 
     Raises
     ------
     InputError
         If the folder holds neither layout, a file is malformed (the message
-        names the file and the field), an image is missing or unreadable, or the
-        images differ in size.
+        names the file and the field), a frame lies outside the folder, an image is
+        missing or unreadable, or the images differ in size.
     """
     root = Path(root)
     background = np.asarray(background, np.float64).reshape(3)
     if (root / "transforms_train.json").is_file():
         layout = "blender"
-        names, splits, poses, angle = _read_blender(root)
+        names, splits, poses, angle = _read_blender(root, frames_outside)
         rgba = [_read_rgba(root / name) for name in names]
         height, width = rgba[0].shape[:2]
         focal = focal_length(width, angle)
         intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
     elif (root / "transforms.json").is_file():
         layout = "nerfstudio"
-        names, splits, poses, intrinsics = _read_nerfstudio(root)
+        names, splits, poses, intrinsics = _read_nerfstudio(root, frames_outside)
         rgba = [_read_rgba(root / name) for name in names]
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout) "
@@ -106,7 +114,7 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> Dataset
     alpha = rgba[..., 3]
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
-                   alpha, background, layout)
+                   alpha, background, layout, frames_outside)
 
 
 def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> np.ndarray:
@@ -178,7 +186,8 @@ def _field(data: dict, key: str, path: Path, kind=float):
     return kind(value)
 
 
-def _frames(data: dict, path: Path, default_suffix: str) -> tuple[list[str], list]:
+def _frames(data: dict, path: Path, default_suffix: str,
+            frames_outside: bool) -> tuple[list[str], list]:
     """Image names (relative to root, with suffix) and poses of a ``frames`` list."""
     names, poses = [], []
     for i, frame in enumerate(data["frames"]):
@@ -197,12 +206,16 @@ def _frames(data: dict, path: Path, default_suffix: str) -> tuple[list[str], lis
             raise InputError(f"{where}: 'transform_matrix' must hold numbers") from None
         if not np.isfinite(pose).all():
             raise InputError(f"{where}: 'transform_matrix' holds NaN or infinity")
-        names.append(PurePosixPath(os.path.normpath(name)).as_posix())
+        name = PurePosixPath(os.path.normpath(name))
+        if not frames_outside and (name.is_absolute() or name.parts[:1] == ("..",)):
+            raise InputError(f"{where}: file_path {frame['file_path']!r} lies outside "
+                             f"{path.parent} (--frames-outside reads it)")
+        names.append(name.as_posix())
         poses.append(np.vstack([pose[:3], [0.0, 0.0, 0.0, 1.0]]))
     return names, poses
 
 
-def _read_blender(root: Path):
+def _read_blender(root: Path, frames_outside: bool):
     names, splits, poses, angle = [], [], [], None
     for split in SPLITS:
         path = root / f"transforms_{split}.json"
@@ -213,7 +226,7 @@ def _read_blender(root: Path):
         if angle is not None and abs(split_angle - angle) > 1e-9:
             raise InputError(f"{path}: camera_angle_x {split_angle} differs from the train split's")
         angle = split_angle
-        split_names, split_poses = _frames(data, path, ".png")
+        split_names, split_poses = _frames(data, path, ".png", frames_outside)
         names += split_names
         poses += split_poses
         splits += [split] * len(split_names)
@@ -222,7 +235,7 @@ def _read_blender(root: Path):
     return names, splits, np.array(poses), angle
 
 
-def _read_nerfstudio(root: Path):
+def _read_nerfstudio(root: Path, frames_outside: bool):
     path = root / "transforms.json"
     data = _load_json(path)
     intrinsics = Intrinsics(
@@ -230,7 +243,7 @@ def _read_nerfstudio(root: Path):
         fx=_field(data, "fl_x", path), fy=_field(data, "fl_y", path),
         cx=_field(data, "cx", path), cy=_field(data, "cy", path),
     )
-    names, poses = _frames(data, path, "")
+    names, poses = _frames(data, path, "", frames_outside)
     if not names:
         raise InputError(f"{path} lists no frames")
     splits = ["test" if i % NERFSTUDIO_HOLDOUT == NERFSTUDIO_HOLDOUT - 1 and len(names) > 1

@@ -215,7 +215,8 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
         raise OutputExists(f"output {existing[0]} already exists (use --force to overwrite)")
     reused = render is not None and render.source == source
     if not reused:
-        dataset = load_dataset(run.record.dataset, run.config.background)
+        dataset = load_dataset(run.record.dataset, run.config.background,
+                               run.record.frames_outside)
         names, poses = render_poses(run, dataset, split, orbit)
         renderer = run if baked is None else run.baked(baked)
         render = render_weights(renderer, names, poses, source, progress)

@@ -53,6 +53,9 @@ class RunRecord:
         Iterations trained.
     log : list of dict
         Per iteration: ``iteration``, ``seconds``, ``loss``, ``psnr`` (batch), ``stage``.
+    frames_outside : bool
+        The dataset's frames may lie outside its folder (``train --frames-outside``); its
+        renders and evaluations read them too.
     """
 
     dataset: str
@@ -61,6 +64,7 @@ class RunRecord:
     stack_meta: dict = field(default_factory=dict)
     iteration: int = 0
     log: list[dict] = field(default_factory=list)
+    frames_outside: bool = False
 
 
 @dataclass
@@ -199,7 +203,8 @@ def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator
         "basis": str(run.basis),
         "order": run.order,
         "meta": {"dataset": record.dataset, "weights": record.weights,
-                 "channels": record.channels, "stack_meta": record.stack_meta},
+                 "channels": record.channels, "stack_meta": record.stack_meta,
+                 "frames_outside": record.frames_outside},
         "log": record.log,
     }
     with atomic_outputs(force=True) as stage:  # the run's own checkpoint
@@ -230,7 +235,8 @@ def run_record(state: dict) -> RunRecord:
     """The ``RunRecord`` of a checkpoint's state."""
     meta = state["meta"]
     return RunRecord(meta.get("dataset", ""), meta.get("weights", ""), meta.get("channels", 0),
-                     meta.get("stack_meta", {}), state["iteration"], state["log"])
+                     meta.get("stack_meta", {}), state["iteration"], state["log"],
+                     meta.get("frames_outside", False) is True)
 
 
 def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> Run:

@@ -198,7 +198,7 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
     occupancy = OccupancyGrid(extent, config.occupancy_voxels)
     occupancy.carve(box, dataset.poses[train_ids], dataset.intrinsics, dataset.alpha[train_ids])
     record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,
-                       stack_meta=stack.meta)
+                       stack_meta=stack.meta, frames_outside=dataset.frames_outside)
     return Run(config, field, occupancy.to(device), box, dataset.intrinsics,
                np.asarray(stack.palette, np.float64), stack.basis, stack.order, record)
 

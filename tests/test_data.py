@@ -13,6 +13,8 @@ from palette_core.basis import weights_to_rgb
 from palette_core.errors import InputError
 from palette_core.stack import WeightStack, read_stack
 
+from .helpers import expect_error
+
 POSE = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]
 
 
@@ -60,6 +62,34 @@ def test_nerfstudio_layout(tmp_path):
     assert (k.fx, k.fy, k.cx, k.cy, k.width, k.height) == (5, 6, 3.1, 1.9, 6, 4)
     assert data.indices("test").tolist() == [7] and len(data.indices("train")) == 8
     assert np.allclose(data.poses[0], POSE) and np.all(data.alpha == 1)
+
+
+@pytest.mark.parametrize("layout", ["nerfstudio", "blender"])
+@pytest.mark.parametrize("escape", ["absolute", "climbing"])
+def test_frames_stay_inside_the_folder(tmp_path, capsys, layout, escape):
+    """A transforms file from elsewhere cannot make training read a file outside its folder
+    without --frames-outside; the refusal names the frame."""
+    secret = tmp_path / "elsewhere" / "secret.png"
+    write_png(secret, np.full((4, 6, 3), 7))
+    root = tmp_path / "capture"
+    path = str(secret) if escape == "absolute" else "../elsewhere/secret.png"
+    if layout == "nerfstudio":
+        write_png(root / "images" / "a.png", np.full((4, 6, 3), 100))
+        frames = [{"file_path": "images/a.png", "transform_matrix": POSE},
+                  {"file_path": path, "transform_matrix": POSE}]
+        (root / "transforms.json").write_text(json.dumps(
+            {"fl_x": 5.0, "fl_y": 5.0, "cx": 3, "cy": 2, "w": 6, "h": 4, "frames": frames}))
+    else:
+        blender_folder(root)
+        data = json.loads((root / "transforms_test.json").read_text())
+        data["frames"][0]["file_path"] = path[:-4]
+        (root / "transforms_test.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match=r"frames\[\d\]: file_path .* lies outside"):
+        load_dataset(root)
+    expect_error(main, ["train", str(root)], "--frames-outside reads it", capsys)
+    data = load_dataset(root, frames_outside=True)
+    assert data.frames_outside and np.allclose(data.images[-1 if layout == "nerfstudio" else 2],
+                                               7 / 255)
 
 
 def test_simulated_dataset_joins_its_weights(tmp_path):
