@@ -312,3 +312,71 @@ def test_damaged_videos_are_one_line(tmp_path, rng, capsys, make, message):
     err = capsys.readouterr().err  # the error may follow pass 1's progress bar
     assert message in err.strip().splitlines()[-1] and "Traceback" not in err
     assert not any(p.name.startswith(("w.", ".w.")) for p in tmp_path.iterdir())
+
+
+# --- dask: addresses and worker counts checked before dask reads anything -------------------
+
+@pytest.fixture
+def fake_scheduler():
+    """A loopback server that accepts and then sends ``greeting`` (or nothing): ``start(greeting)
+    -> address``."""
+    import socket
+    import threading
+
+    servers = []
+
+    def start(greeting: bytes) -> str:
+        server = socket.create_server(("127.0.0.1", 0))
+        server.settimeout(5)
+        servers.append(server)
+
+        def serve():
+            try:
+                connection, _ = server.accept()
+            except OSError:
+                return
+            with connection:
+                connection.sendall(greeting)
+                connection.settimeout(5)
+                try:
+                    connection.recv(1)  # hold the connection open until the client leaves
+                except OSError:
+                    pass
+
+        threading.Thread(target=serve, daemon=True).start()
+        return f"tcp://127.0.0.1:{server.getsockname()[1]}"
+
+    yield start
+    for server in servers:
+        server.close()
+
+
+@pytest.mark.parametrize("greeting, message", [
+    (b"", "did not answer within 0.5 s"),
+    (b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n",
+     "does not answer like a dask scheduler"),
+])
+def test_a_scheduler_that_is_not_one(photo_dir, tmp_path, capsys, monkeypatch, fake_scheduler,
+                                     greeting, message):
+    import palette_core.cluster
+
+    monkeypatch.setattr(palette_core.cluster, "CONNECT_TIMEOUT_S", 0.5)
+    expect_error(decompose_cli.main, [str(photo_dir), "-o", str(tmp_path / "w.zarr"),
+                                      "--scheduler", fake_scheduler(greeting)], message, capsys)
+    assert not any(p.name.startswith(("w.", ".w.")) for p in tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--scheduler", "tls://127.0.0.1:1"], "needs dask's TLS settings"),
+    (["--scheduler", "ws://127.0.0.1:1"], "must be tcp://HOST:PORT"),
+    (["--scheduler", "tcp://127.0.0.1"], "must be tcp://HOST:PORT"),
+    (["--workers", "100000"], "--workers must be 1 to"),
+    (["--workers", "0"], "--workers must be 1 to"),
+    (["--workers", "1", "--scheduler", "tcp://127.0.0.1:1"], "not both"),
+])
+@pytest.mark.parametrize("output", ["w.zarr", "w.npz"])
+def test_dask_options_are_checked(photo_dir, tmp_path, capsys, options, message, output):
+    if output == "w.npz" and options[0] == "--scheduler":
+        message = "need -o NAME.zarr"
+    expect_error(decompose_cli.main, [str(photo_dir), "-o", str(tmp_path / output), *options],
+                 message, capsys)

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import sys
 
+from ..cluster import check_workers, dask_client
 from ..collection import decompose_collection, is_video, palette_paths
 from ..decompose import decompose
 from ..errors import InputError
@@ -65,9 +65,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args) -> int:
+    check_workers(args.workers, args.scheduler)
     if is_zarr(args.output) or any(is_video(path) for path in args.inputs):
         return _run_collection(args)
-    if args.workers or args.scheduler or args.resume:
+    if args.workers is not None or args.scheduler is not None or args.resume:
         raise InputError("--workers, --scheduler and --resume need -o NAME.zarr")
     result = decompose(args.inputs, args.k, args.max_error, args.method, args.dtype,
                        given_options(args, WEIGHT_METHODS), args.palette_method, args.max_pixels)
@@ -93,8 +94,6 @@ def _run_collection(args) -> int:
                          f"{args.output}")
     if args.layers or given_options(args, WEIGHT_METHODS) or args.method != "mvc":
         raise InputError("a Zarr stack holds mean value coordinates, without --layers")
-    if args.workers is not None and args.workers < 1:
-        raise InputError(f"--workers must be at least 1, got {args.workers}")
     with dask_client(args.workers, args.scheduler) as client:
         done = decompose_collection(args.inputs, args.output, args.k, args.max_error,
                                     args.palette_method, args.dtype, args.max_pixels, client,
@@ -107,28 +106,6 @@ def _run_collection(args) -> int:
     print("time: " + ", ".join(f"{stage} {t:.2f} s" for stage, t in done.timings.items()))
     print("wrote " + ", ".join(map(str, [args.output, *palette_paths(args.output)])))
     return 0
-
-
-@contextlib.contextmanager
-def dask_client(workers: int | None, scheduler: str | None):
-    """A dask.distributed client: of a local cluster of ``workers`` processes, or of the
-    cluster at ``scheduler``; None when neither is given."""
-    if workers is None and scheduler is None:
-        yield None
-        return
-    from dask.distributed import Client, LocalCluster
-
-    if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise InputError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
-        with client:
-            yield client
-        return
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
-        yield client
 
 
 if __name__ == "__main__":
