@@ -36,6 +36,7 @@ STRIP = 7  # thumbnails around the current photo
 PREVIEW_ROWS = 24  # rows of a scene view while the camera moves
 SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
 JPEG_QUALITY = 92
+NOTICE_S = 5.0  # how long a notification stays
 MAX_ASPECT = 8.0  # widest (and tallest) view drawn: a browser's aspect cannot size a render
 
 
@@ -241,7 +242,13 @@ class Studio:
         return self.editor.original if self.before.value else self.editor.palette
 
     def say(self, text: str) -> None:
+        """Show ``text`` (markdown) in the status line at the top of the panel, and as a
+        notification in every tab, in sight wherever the panel is scrolled."""
         self.status.content = text
+        plain = text.replace("**", "").replace("`", "")
+        for client in self.server.get_clients().values():
+            client.add_notification("palette-studio", plain, auto_close_seconds=NOTICE_S,
+                                    color="red" if plain.startswith("error") else None)
 
     def redraw(self) -> None:
         """Recolour what every tab shows (no network run in scene mode)."""
@@ -327,7 +334,7 @@ class Studio:
     def _write(self, client, write, force: bool = False) -> None:
         """Run ``write(force) -> [paths]``; if an output exists, ask the user in a window
         before running it again with ``force``."""
-        self.say("writing ...")
+        self.status.content = "writing ..."  # the result is said: a notification then
         try:
             written = write(force)
         except OutputExists as exc:
