@@ -10,12 +10,12 @@ import numpy as np
 from tqdm import tqdm
 
 from palette_core.basis import weights_to_rgb
-from palette_core.collection import check_store_output, write_zarr_stack
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable, inside, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.render import palette_swatch
 from palette_core.stack import WeightStack, is_zarr, write_stack
+from palette_core.stack.zarr import check_store_output
 
 from .fit import TemplateFit, fit_all_templates, palette_shares
 from .hcl import srgb_to_hcl
@@ -99,7 +99,7 @@ class StackHarmonization:
         for path in zarrs.values():
             check_store_output(path, force)
         for name, path in zarrs.items():
-            write_zarr_stack(self.harmonized_stack(name), path, force)
+            write_stack(self.harmonized_stack(name), path, force=force)
         with atomic_outputs(force) as stage:
             for name, path in stacks.items():
                 if name not in zarrs:

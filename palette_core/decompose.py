@@ -12,11 +12,11 @@ from .colour_set import ColourSet
 from .errors import InputError
 from .io import DEFAULT_MAX_PIXELS, find_images, load_images
 from .outputs import atomic_outputs, check_apart, check_writable, save_image
-from .palette_file import write_palette_json
+from .palette_file import palette_paths, write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .registry import validate_method
 from .render import layer_paths, palette_swatch
-from .stack import WeightStack, check_dtype, write_stack
+from .stack import WeightStack, check_dtype, stored_weights, write_stack
 from .weights import check_weight_method, image_weights
 
 #: Above this many images, loading and weighting show progress bars.
@@ -59,8 +59,7 @@ class Decomposition:
     def output_paths(self, output: str | Path) -> list[Path]:
         """The stack, and beside it the palette swatch and JSON named after it
         (``w.npz``: ``w.palette.png``, ``w.palette.json``; docs/formats.md)."""
-        output = Path(output)
-        return [output, output.with_suffix(".palette.png"), output.with_suffix(".palette.json")]
+        return [Path(output), *palette_paths(output)]
 
     def write(self, output: str | Path, layers: str | Path | None = None,
               force: bool = False) -> list[Path]:
@@ -205,21 +204,3 @@ def decompose(
     stack = WeightStack(palette, weights, [im.name for im in images], method,
                         hull_faces=poly.faces.astype(np.int32), meta=meta)
     return Decomposition(stack, rmse, overall, timings, k, [Path(p) for p in inputs])
-
-
-#: Each pixel's float16 weights sum to one within this (half a float16 step at 1, plus
-#: the float32 sum's rounding); float32 weights hold ``constants.WEIGHT_SUM_TOL``.
-FLOAT16_SUM_TOL = 2.5e-4
-
-
-def stored_weights(weights: np.ndarray, dtype: str) -> np.ndarray:
-    """(H, W, K) weights in the storage type; float16 rounding residuals go to each pixel's
-    largest weight, so that sums stay within ``FLOAT16_SUM_TOL`` of one."""
-    if dtype != "float16":
-        return weights.astype(dtype, copy=False)
-    rounded = weights.astype(np.float16)
-    residual = 1.0 - rounded.astype(np.float32).sum(-1, keepdims=True)
-    largest = np.argmax(weights, axis=-1)[..., None]
-    corrected = np.take_along_axis(rounded, largest, -1).astype(np.float32) + residual
-    np.put_along_axis(rounded, largest, corrected.astype(np.float16), -1)
-    return rounded

@@ -27,6 +27,14 @@ def palette_to_hex(palette: np.ndarray) -> list[str]:
     return ["#{:02x}{:02x}{:02x}".format(*c) for c in codes]
 
 
+def palette_paths(stack: str | os.PathLike) -> tuple[Path, Path]:
+    """The palette swatch and JSON beside a stack, named after it (``w.npz`` or ``w.zarr``:
+    ``w.palette.png``, ``w.palette.json``)."""
+    stem = str(stack).rstrip("/")
+    stem = stem.rsplit(".", 1)[0] if Path(stem).suffix in (".npz", ".zarr") else stem
+    return Path(stem + ".palette.png"), Path(stem + ".palette.json")
+
+
 def write_palette_json(file, palette: np.ndarray) -> None:
     """Write ``{"palette": ["#rrggbb", ...], "rgb": [[r, g, b], ...]}`` (exact) to a path or
     text file object."""

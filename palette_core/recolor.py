@@ -11,7 +11,7 @@ import numpy as np
 from .basis import weights_to_rgb
 from .errors import InputError
 from .outputs import atomic_outputs, check_writable, inside, save_image
-from .stack import WeightStack
+from .stack import WeightStack, video_of
 
 
 def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.PathLike,
@@ -35,9 +35,9 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     """
     videos = {} if frames else stack.meta.get("videos", {})
     targets = [inside(folder, video) for video in videos]
-    images = [(i, name) for i, name in enumerate(stack.names)
-              if name.split("#")[0] not in videos]
-    targets += [inside(folder, name if "#" not in name else f"{name}.png") for _, name in images]
+    images = [(i, name) for i, name in enumerate(stack.names) if video_of(name) not in videos]
+    targets += [inside(folder, name if video_of(name) is None else f"{name}.png")
+                for _, name in images]
     check_writable(targets, force)
 
     def recoloured(i: int) -> np.ndarray:
@@ -45,7 +45,7 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
 
     with atomic_outputs(force) as stage:
         for video, path in zip(videos, targets):
-            indices = [i for i, name in enumerate(stack.names) if name.split("#")[0] == video]
+            indices = [i for i, name in enumerate(stack.names) if video_of(name) == video]
             write_video(stage(path), (recoloured(i) for i in indices), videos[video], str(path))
         for (i, _), path in zip(images, targets[len(videos):]):
             save_image(stage(path), recoloured(i))

@@ -10,6 +10,7 @@ av = pytest.importorskip("av")
 zarr = pytest.importorskip("zarr")
 
 import palette_core.collection as collection  # noqa: E402
+import palette_core.sources as sources  # noqa: E402
 from palette_core import decompose, read_stack  # noqa: E402
 from palette_core.cli import decompose as decompose_cli  # noqa: E402
 from palette_core.cli import recolor  # noqa: E402
@@ -99,13 +100,13 @@ def test_a_killed_second_pass_resumes(photo_dir, tmp_path, monkeypatch, capsys):
 
 def test_video_tasks_start_at_key_frames_and_seek_there(tmp_path, rng, monkeypatch):
     clip = make_video(tmp_path / "clip.mp4", rng, frames=9, keyframe_every=3)
-    source = collection.find_sources([clip])[0]
+    source = sources.find_sources([clip])[0]
     assert source.keyframes == (0, 3, 6)
     monkeypatch.setattr(collection, "TASK_MEGAPIXELS", 4 * 48 * 64 / 1e6)  # 4 frames a task
     assert [(t.start, t.stop) for t in collection.plan_tasks([source])] == [(0, 6), (6, 9)]
-    whole = [pixels for pixels, _ in collection.read_frames(source)]
+    whole = [pixels for pixels, _ in sources.read_frames(source)]
     for start, stop in [(3, 5), (4, 9), (7, 8)]:
-        part = [pixels for pixels, _ in collection.read_frames(source, start, stop)]
+        part = [pixels for pixels, _ in sources.read_frames(source, start, stop)]
         assert len(part) == stop - start
         assert all(np.array_equal(a, b) for a, b in zip(part, whole[start:stop]))
 
@@ -183,8 +184,8 @@ def _store(tmp_path, names=("a.png", "b.png"), size=(3, 4), meta=None, basis="ad
            order=1):
     """A valid Zarr stack written by the package, to be damaged by the test."""
     from palette_core.basis import Basis, n_terms
-    from palette_core.collection import write_zarr_stack
     from palette_core.stack import WeightStack
+    from palette_core.stack.zarr import write_zarr_stack
 
     m = n_terms(4, Basis(basis), order)
     weights = [np.full((*size, m), 1 / m, np.float32) for _ in names]

@@ -23,8 +23,8 @@ from nerf_stage.cli import main as nerf_stage
 from nerf_stage.data import load_dataset
 from palette_core import InputError, WeightStack, load_image, read_stack, write_stack
 from palette_core.cli import decompose, recolor
-from palette_core.decompose import FLOAT16_SUM_TOL
 from palette_core.outputs import atomic_outputs, inside, publish_folder
+from palette_core.stack import FLOAT16_SUM_TOL
 
 from .helpers import expect_error
 

@@ -347,8 +347,8 @@ def test_a_hundred_images_open_without_reading_them(tmp_path, rng):
 
 def test_photo_mode_reads_zarr_stacks(tmp_path, rng):
     pytest.importorskip("zarr")
-    from palette_core.collection import write_zarr_stack
     from palette_core.stack import read_stack
+    from palette_core.stack.zarr import write_zarr_stack
 
     write_zarr_stack(read_stack(tiny_stack(tmp_path / "w.npz", rng)), tmp_path / "w.zarr")
     lazy, eager = PhotoTarget.open(tmp_path / "w.zarr"), PhotoTarget.open(tmp_path / "w.npz")

@@ -5,12 +5,13 @@ from __future__ import annotations
 import sys
 
 from ..cluster import check_workers, dask_client
-from ..collection import decompose_collection, is_video, palette_paths
+from ..collection import decompose_collection
 from ..decompose import decompose
 from ..errors import InputError
 from ..io import DEFAULT_MAX_PIXELS
-from ..palette_file import palette_to_hex
+from ..palette_file import palette_paths, palette_to_hex
 from ..palettes import PALETTE_METHODS
+from ..sources import is_video
 from ..stack import DEFAULT_STACK, is_zarr
 from ..weights import WEIGHT_METHODS
 from . import ArgumentParser, add_method_options, given_options, run_cli

@@ -1,8 +1,7 @@
-"""The weight stack: palette and per-image weights in one NPZ file (format v1).
+"""Weight stacks in one NPZ file (format ``palette-weights/1``).
 
-See docs/formats.md, "The weight stack". The file loads with
-``numpy.load(path, allow_pickle=False)``; ``read_stack`` validates every key and
-names what is wrong.
+The file loads with ``numpy.load(path, allow_pickle=False)``; ``read_npz_stack``
+validates every key and names what is wrong.
 """
 
 from __future__ import annotations
@@ -10,54 +9,16 @@ from __future__ import annotations
 import json
 import os
 import zipfile
-from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 import numpy as np
 
-from .basis import Basis, check_basis
-from .errors import InputError
-
-FORMAT = "palette-weights/1"
-#: Where ``palette-decompose`` writes its stack, and where the other commands look for one.
-DEFAULT_STACK = "weights.npz"
+from ..basis import Basis, check_basis
+from ..errors import InputError
+from .base import FORMAT, WeightStack, check_dtype, check_meta, check_names
 
 
-@dataclass
-class WeightStack:
-    """Palette and weights of a set of images.
-
-    Attributes
-    ----------
-    palette : (K, 3) float32
-        Palette colours, sRGB in [0, 1].
-    weights : list of (H_i, W_i, M) float32 or float16
-        One weight image per input image, in stitch order.
-    names : list of str
-        Image paths relative to the input root.
-    method : str
-        ``"mvc"``, ``"rgbxy"`` or ``"simulated"``.
-    basis : Basis
-        ``ADDITIVE`` (M = K) or ``TRANSPORT`` (M = C(K + order, order)).
-    order : int
-        Transport order; 1 for additive stacks.
-    hull_faces : (F, 3) int32
-        Outward triangles of the palette polytope; empty when it is flat.
-    meta : dict
-        Package version, parameters, per-image RMSE, timings.
-    """
-
-    palette: np.ndarray
-    weights: list[np.ndarray]
-    names: list[str]
-    method: str = "mvc"
-    basis: Basis = Basis.ADDITIVE
-    order: int = 1
-    hull_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32))
-    meta: dict = field(default_factory=dict)
-
-
-def write_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None = None) -> None:
+def write_npz_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None = None) -> None:
     """Write ``stack`` as NPZ format v1 to ``file`` (a path or a binary file object).
 
     ``dtype`` (float32 or float16) converts the weights; None keeps the first image's.
@@ -84,15 +45,8 @@ def write_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None =
     np.savez(file, **arrays)
 
 
-def is_zarr(path: str | os.PathLike) -> bool:
-    """Whether ``path`` names a Zarr store (``NAME.zarr``, a folder, or an fsspec URL)."""
-    text = str(path)
-    return text.rstrip("/").endswith(".zarr") or "://" in text or Path(path).is_dir()
-
-
-def read_stack(path: str | os.PathLike) -> WeightStack:
-    """Read and validate a weight stack: NPZ, or a Zarr store (``collection.read_zarr_stack``,
-    whose weights are read lazily).
+def read_npz_stack(path: str | os.PathLike) -> WeightStack:
+    """Read and validate an NPZ weight stack.
 
     Only the keys of the format are read, and each array's declared shape is
     checked against its stored size before it is loaded, so a crafted file can
@@ -105,10 +59,6 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
         (the message names the key): names must be distinct relative paths,
         weights finite, the palette in [0, 1].
     """
-    if is_zarr(path):
-        from .collection import read_zarr_stack
-
-        return read_zarr_stack(str(path))
     path = Path(path)
     if not path.is_file():
         raise InputError(f"weight stack {path} does not exist")
@@ -162,41 +112,6 @@ def read_stack(path: str | os.PathLike) -> WeightStack:
         method = npz.text("method")
     return WeightStack(palette.astype(np.float32), weights, names, method, basis, order,
                        hull_faces.astype(np.int32), meta)
-
-
-def check_names(names: list[str], source: str) -> None:
-    """InputError unless every name is a distinct, non-empty relative path without ``..``
-    or NUL: names become output paths (``outputs.inside`` checks those again)."""
-    seen = set()
-    for name in names:
-        parts = PurePosixPath(name).parts
-        if (not name or "\0" in name or name.startswith(("/", "\\")) or ".." in parts
-                or "\\" in name or name in seen):
-            raise InputError(f"{source}: image name {name!r} is not a distinct relative path")
-        seen.add(name)
-
-
-#: Fastest frame rate a stack's video may declare (``meta["videos"]``).
-MAX_FPS = 1000.0
-
-
-def check_meta(meta, names: list[str], source: str) -> None:
-    """InputError unless ``meta`` is a JSON object whose ``videos`` (if any) maps videos of
-    the stack (names ``clip.mp4`` of frames ``clip.mp4#000123``) to frame rates in
-    (0, ``MAX_FPS``]: recolouring encodes them."""
-    if not isinstance(meta, dict):
-        raise InputError(f"{source}: meta must be a JSON object")
-    videos = meta.get("videos", {})
-    if not isinstance(videos, dict):
-        raise InputError(f"{source}: meta videos must map videos to frame rates")
-    sources = {name.split("#")[0] for name in names if "#" in name}
-    for video, fps in videos.items():
-        if video not in sources:
-            raise InputError(f"{source}: meta videos names {video!r}, which has no frames")
-        if (isinstance(fps, bool) or not isinstance(fps, (int, float))
-                or not 0 < fps <= MAX_FPS):
-            raise InputError(f"{source}: frame rate of {video} must be in (0, {MAX_FPS:g}], "
-                             f"got {fps!r}")
 
 
 class NpzReader:
@@ -258,9 +173,3 @@ class NpzReader:
             return json.loads(self.text(key))
         except (json.JSONDecodeError, RecursionError) as exc:
             raise InputError(f"{self.path}: {key} is not valid JSON: {exc}") from None
-
-
-def check_dtype(dtype: str) -> None:
-    """InputError unless ``dtype`` is a storage type of stack weights (float32, float16)."""
-    if dtype not in ("float32", "float16"):
-        raise InputError(f"dtype must be float32 or float16, got {dtype!r}")
