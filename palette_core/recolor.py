@@ -39,6 +39,8 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     targets += [inside(folder, name if video_of(name) is None else f"{name}.png")
                 for _, name in images]
     check_writable(targets, force)
+    for path in targets[:len(videos)]:
+        video_codec(path)  # before anything is written
 
     def recoloured(i: int) -> np.ndarray:
         return weights_to_rgb(stack.weights[i], palette, stack.basis, stack.order)
@@ -52,22 +54,52 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     return targets
 
 
-def write_video(path: Path, frames, fps: float, name: str | None = None) -> None:
-    """Encode float (H, W, 3) frames in [0, 1] as H.264 (x264 ``veryfast``, CRF 18; MPEG-4
-    Part 2 where PyAV lacks x264); odd sizes lose their last row or column (4:2:0).
+#: Encoders for each video container, best first, with their options: H.264 (x264
+#: ``veryfast``, CRF 18) where the container holds it, VP9 for WebM, MPEG-4 Part 2 as the
+#: fallback of every container that can hold it.
+VIDEO_CODECS = {
+    ".mp4": ("libx264", "mpeg4"), ".m4v": ("libx264", "mpeg4"), ".mov": ("libx264", "mpeg4"),
+    ".mkv": ("libx264", "mpeg4"), ".avi": ("mpeg4", "mjpeg"), ".webm": ("libvpx-vp9", "libvpx"),
+}
+_CODEC_OPTIONS = {"libx264": {"preset": "veryfast", "crf": "18"},
+                  "libvpx-vp9": {"crf": "18", "b": "0", "deadline": "realtime"}}
+
+
+def video_codec(path: str | os.PathLike) -> str:
+    """The encoder ``write_video`` uses for ``path``'s container (its suffix).
 
     Raises
     ------
     InputError
-        Naming the video (``name``, else ``path``) if its frames are smaller than 2x2 or
-        differ in size, or the encoder fails.
+        For a container without an encoder in this PyAV.
+    """
+    import av
+
+    suffix = Path(path).suffix.lower()
+    codec = next((c for c in VIDEO_CODECS.get(suffix, ()) if c in av.codecs_available), None)
+    if codec is None:
+        raise InputError(f"cannot write video {path}: no encoder for {suffix or 'it'} "
+                         f"(containers: {', '.join(VIDEO_CODECS)})")
+    return codec
+
+
+def write_video(path: Path, frames, fps: float, name: str | None = None) -> None:
+    """Encode float (H, W, 3) frames in [0, 1] into the container that ``name``'s suffix
+    names, with its encoder (``video_codec``); odd sizes lose their last row or column
+    (4:2:0).
+
+    Raises
+    ------
+    InputError
+        Naming the video (``name``, else ``path``) if its container has no encoder, its
+        frames are smaller than 2x2 or differ in size, or the encoder fails.
     """
     import av
 
     name = name or str(path)
+    codec = video_codec(name)
     try:
-        with av.open(str(path), mode="w") as container:
-            codec = "libx264" if "libx264" in av.codecs_available else "mpeg4"
+        with av.open(str(path), mode="w") as container:  # staged with the same suffix
             stream = size = None
             for rgb in frames:
                 data = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
@@ -76,9 +108,9 @@ def write_video(path: Path, frames, fps: float, name: str | None = None) -> None
                     if min(size) < 2:
                         raise InputError(f"video {name}: frames of {size[1]}x{size[0]} pixels "
                                          "cannot be encoded (at least 2x2)")
-                    options = {"preset": "veryfast", "crf": "18"} if codec == "libx264" else {}
                     stream = container.add_stream(
-                        codec, rate=Fraction(fps).limit_denominator(1001), options=options)
+                        codec, rate=Fraction(fps).limit_denominator(1001),
+                        options=_CODEC_OPTIONS.get(codec, {}))
                     stream.height, stream.width = size[0] // 2 * 2, size[1] // 2 * 2
                     stream.pix_fmt = "yuv420p"
                 if data.shape[:2] != size:

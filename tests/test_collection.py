@@ -381,3 +381,16 @@ def test_dask_options_are_checked(photo_dir, tmp_path, capsys, options, message,
         message = "need -o NAME.zarr"
     expect_error(decompose_cli.main, [str(photo_dir), "-o", str(tmp_path / output), *options],
                  message, capsys)
+
+
+@pytest.mark.parametrize("container, codec", [(".webm", "vp9"), (".mkv", "h264"),
+                                               (".avi", "mpeg4"), (".mov", "h264")])
+def test_recoloured_videos_keep_their_container(tmp_path, rng, container, codec):
+    """The encoder follows the video's container: a .webm is written as VP9, not H.264."""
+    names = [f"clip{container}#{i:06d}" for i in range(4)]
+    store = _store(tmp_path, names, (16, 24), meta={"videos": {f"clip{container}": 10}})
+    assert recolor.main([str(store), "--palette", str(_palette(tmp_path)), "-o",
+                         str(tmp_path / "out")]) == 0
+    with av.open(str(tmp_path / "out" / f"clip{container}")) as clip:
+        assert clip.streams.video[0].codec_context.name == codec
+        assert sum(1 for _ in clip.decode(video=0)) == 4
