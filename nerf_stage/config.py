@@ -204,7 +204,6 @@ class TrainConfig:
         """
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected an object of config fields")
-        data = _ADDED_FIELDS | _nest_flat_fields(data)
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(data) - set(known))
         if unknown:
@@ -216,7 +215,7 @@ class TrainConfig:
                 if not isinstance(value, dict) or set(value) - {f.name for f in fields(nested)}:
                     raise InputError(f"{source}: {name} must be an object of "
                                      f"{nested.__name__} fields")
-                value = nested(**(_ADDED_NESTED_FIELDS.get(name, {}) | value))
+                value = nested(**value)
             values[name] = value
         try:
             return cls(**values)
@@ -260,34 +259,6 @@ class TrainConfig:
 
 #: The nested backbone configs of ``TrainConfig``, by field name.
 _NESTED = {"grid": GridConfig, "mlp": MLPConfig}
-
-#: Fields added since version 0.1.0, with the values that runs saved before them trained with.
-_ADDED_FIELDS = {"rgb_weight": 0.0, "sparsity_weight": 0.0, "lr_decay": 1.0}
-#: Likewise for the nested backbone configs, by config.
-_ADDED_NESTED_FIELDS = {"grid": {"deferred": False, "head_layers": 1}}
-
-#: Flat field names of runs saved by version 0.1.0, and where they live now.
-_FLAT_FIELDS = {
-    "grid_voxels": ("grid", "voxels"), "grid_features": ("grid", "features"),
-    "grid_view_frequencies": ("grid", "view_frequencies"), "grid_lr": ("grid", "lr"),
-    "step_voxels": ("grid", "step_voxels"), "occupancy_every": ("grid", "occupancy_every"),
-    "warmup_iters": ("grid", "warmup_iters"), "mlp_samples": ("mlp", "samples"),
-}
-
-
-def _nest_flat_fields(data: dict) -> dict:
-    """Move the flat backbone fields of version 0.1.0 configs into the nested configs; its
-    ``lr`` (0 for "the backbone's default") becomes the chosen backbone's ``network_lr``."""
-    data = dict(data)
-    for flat, (group, name) in _FLAT_FIELDS.items():
-        if flat in data:
-            data[group] = {**data.get(group, {}), name: data.pop(flat)}
-    lr = data.pop("lr", 0)
-    if lr and data.get("backbone") in _NESTED:
-        group = data["backbone"]
-        data[group] = {**data.get(group, {}), "network_lr": lr}
-    return data
-
 
 def _member(enum: type[StrEnum], value, name: str):
     try:

@@ -265,8 +265,8 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
 
 
 def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
-    """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they differ (a run
-    of an older nerf-stage, whose grids had their own SparseAdam or were not channels-first)."""
+    """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they do not fit
+    the run's parameters (a damaged or foreign checkpoint)."""
     try:
         for optimiser, state in zip(optimisers, states, strict=True):
             optimiser.load_state_dict(state)
@@ -276,8 +276,8 @@ def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
                     if moments.shape != p.shape:
                         raise ValueError("moments of another shape")
     except (ValueError, KeyError, TypeError):
-        raise InputError(f"{rundir} was trained with other optimisers (an older nerf-stage); "
-                         "start afresh with --force") from None
+        raise InputError(f"{rundir} was trained with other optimisers than its parameters "
+                         "take; start afresh with --force") from None
 
 
 def _decay_learning_rates(optimisers: list, config: TrainConfig, it: int) -> None:

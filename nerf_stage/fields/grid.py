@@ -42,15 +42,10 @@ def _corners(x: torch.Tensor, extent: torch.Tensor, resolution: torch.Tensor,
     return index, weight.reshape(-1, 8)
 
 
-def _channels_first_grids(field: GridField, state_dict: dict, prefix: str, *args) -> None:
-    """Load hook of ``GridField``: drops its ``_feature_rows``; runs saved before its grids were
-    channels-first held them as (N, C) ``embedding`` tables (``density_grid.weight``,
-    ``feature_grid.weight``)."""
+def _drop_feature_rows(field: GridField, *args) -> None:
+    """Load hook of ``GridField``: loading copies into the grids in place, so the row-major
+    copy of ``_feature_rows`` must be made again."""
     field._rows = None
-    for name in ("density_grid", "feature_grid"):
-        old = state_dict.pop(f"{prefix}{name}.weight", None)
-        if old is not None:
-            state_dict[prefix + name] = old.t().contiguous()
 
 
 def _interpolate_rows(table: torch.Tensor, index: torch.Tensor, weight: torch.Tensor):
@@ -139,7 +134,7 @@ class GridField(Field):
         n = int(torch.prod(self.resolution))
         self.density_grid = nn.Parameter(torch.zeros(1, n))  # (C, N) tables of ``_Trilinear``
         self.feature_grid = nn.Parameter(torch.zeros(features, n))
-        self._register_load_state_dict_pre_hook(_channels_first_grids, with_module=True)
+        self._register_load_state_dict_pre_hook(_drop_feature_rows, with_module=True)
         self._rows, self._rows_of = None, None  # ``_feature_rows``
         n_direction = 0 if direction_frequencies is None else 3 * (1 + 2 * direction_frequencies)
         self.hidden = nn.Linear(features + n_direction, head_width)
