@@ -28,12 +28,11 @@ from .basis import Basis
 from .colour_counts import ColourCounter, ColourIndex, decode_codes, merge_counts
 from .errors import InputError, OutputExists
 from .io import DEFAULT_MAX_PIXELS
-from .mvc import rgb_to_mvc_weights
 from .outputs import atomic_outputs, check_apart, check_writable
 from .palette_file import palette_paths, write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .polytope import Polytope
-from .registry import validate_method
+from .registry import check_options
 from .render import palette_swatch
 from .sources import Source, find_sources, read_frames
 from .stack import WeightStack, check_dtype, stored_weights
@@ -45,6 +44,7 @@ from .stack.zarr import (
     publish_store,
     remove_store,
 )
+from .weights import check_weight_method, colour_weights
 
 #: Megapixels of one task: a whole image, or a run of frames of one video.
 TASK_MEGAPIXELS = 8.0
@@ -104,7 +104,9 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
                          max_error: float | None = None, palette_method: str = "refined",
                          dtype: str = "float32", max_pixels: int = DEFAULT_MAX_PIXELS,
                          client=None, resume: bool = False, force: bool = False,
-                         progress: bool = True) -> Collection:
+                         progress: bool = True, method: str = "mvc",
+                         method_options: dict | None = None,
+                         palette_options: dict | None = None) -> Collection:
     """Decompose images and videos into a Zarr weight stack ``output`` in two streaming passes.
 
     Parameters
@@ -116,6 +118,10 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
         Continue a store whose pass 2 was stopped (same inputs and palette settings).
     force : bool
         Replace an existing store.
+    method, method_options : str, dict
+        A per-colour weight method (``weights.WEIGHT_METHODS``) and its options.
+    palette_options : dict
+        Options of ``palette_method``.
 
     Raises
     ------
@@ -124,7 +130,9 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
         ``resume``).
     """
     k = check_palette_size(k, max_error)
-    validate_method(palette_method, PALETTE_METHODS, "palette method")
+    method_options, palette_options = method_options or {}, palette_options or {}
+    check_options(PALETTE_METHODS, palette_method, "palette method", palette_options)
+    check_weight_method(method, method_options, stream=True)
     check_dtype(dtype)
     swatch, palette_json = palette_paths(output)
     check_apart([output, swatch, palette_json], inputs)
@@ -152,12 +160,16 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
                          "to take a palette from")
     timings["pass1"] = time.perf_counter() - start
     start = time.perf_counter()
-    poly = palette_polytope(decode_codes(codes), counts, k, max_error, palette_method)
+    poly = palette_polytope(decode_codes(codes), counts, k, max_error, palette_method,
+                            **palette_options)
     timings["palette"] = time.perf_counter() - start
     collection = Collection(sources, codes, counts, poly, timings)
     start = time.perf_counter()
-    store = _open_store(partial, collection, k, max_error, palette_method, dtype, resume)
-    weights = rgb_to_mvc_weights(decode_codes(codes), poly).astype(np.float32)
+    store = _open_store(partial, collection, method, dtype, resume, {
+        "k": k, "max_error": max_error, "palette_method": palette_method,
+        "palette_options": palette_options, "method_options": method_options})
+    weights = colour_weights(decode_codes(codes), poly, method,
+                             **method_options).astype(np.float32)
     todo = [t for t in tasks if not _complete(store, t)]
     _pass2(todo, partial, codes, weights, dtype, max_pixels, client, progress)
     timings["pass2"] = time.perf_counter() - start
@@ -291,7 +303,8 @@ def _array_name(source: Source, store) -> str:
     return store.attrs["arrays"][source.name]
 
 
-def _open_store(output, collection: Collection, k, max_error, palette_method, dtype, resume):
+def _open_store(output, collection: Collection, method: str, dtype: str, resume: bool,
+                settings: dict):
     """The Zarr group of the stack: created, or reopened to resume."""
     import zarr
 
@@ -305,11 +318,10 @@ def _open_store(output, collection: Collection, k, max_error, palette_method, dt
             raise InputError(f"--resume: {output} holds another collection or palette; start "
                              "afresh with --force")
         return store
-    meta = {"version": __version__, "k": k, "max_error": max_error,
-            "palette_method": palette_method, "dtype": dtype,
+    meta = {"version": __version__, **settings, "dtype": dtype,
             "videos": {s.name: s.fps for s in collection.sources if s.video},
             "n_pixels": int(collection.counts.sum()), "n_colours": len(collection.codes)}
-    header = WeightStack(palette, [], collection.names, "mvc", Basis.ADDITIVE, 1, meta=meta)
+    header = WeightStack(palette, [], collection.names, method, Basis.ADDITIVE, 1, meta=meta)
     sources = [(s.name, s.frames if s.video else None, (s.height, s.width, len(palette)))
                for s in collection.sources]
     return create_store(output, header, sources, dtype, complete=False)

@@ -14,7 +14,7 @@ from .io import DEFAULT_MAX_PIXELS, find_images, load_images
 from .outputs import atomic_outputs, check_apart, check_writable, save_image
 from .palette_file import palette_paths, write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
-from .registry import validate_method
+from .registry import check_options
 from .render import layer_paths, palette_swatch
 from .stack import WeightStack, check_dtype, stored_weights, write_stack
 from .weights import check_weight_method, image_weights
@@ -115,6 +115,7 @@ def decompose(
     method_options: dict | None = None,
     palette_method: str = "refined",
     max_pixels: int = DEFAULT_MAX_PIXELS,
+    palette_options: dict | None = None,
 ) -> Decomposition:
     """Decompose image files and folders into one shared palette and per-pixel weights.
 
@@ -136,6 +137,8 @@ def decompose(
     max_pixels : int
         Largest image to decode (``io.DEFAULT_MAX_PIXELS``); larger ones are refused
         from their header.
+    palette_options : dict, optional
+        Keyword options of the palette method.
 
     Raises
     ------
@@ -148,9 +151,9 @@ def decompose(
     within ``FLOAT16_SUM_TOL`` (the residual of the rounding goes to its largest weight).
     """
     k = check_palette_size(k, max_error)
-    method_options = method_options or {}
+    method_options, palette_options = method_options or {}, palette_options or {}
     check_weight_method(method, method_options)
-    validate_method(palette_method, PALETTE_METHODS, "palette method")
+    check_options(PALETTE_METHODS, palette_method, "palette method", palette_options)
     check_dtype(dtype)
     if not max_pixels >= 1:
         raise InputError(f"max_pixels must be at least 1, got {max_pixels}")
@@ -166,7 +169,8 @@ def decompose(
     timings["load"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    poly = palette_polytope(colour_set.colours, colour_set.counts, k, max_error, palette_method)
+    poly = palette_polytope(colour_set.colours, colour_set.counts, k, max_error, palette_method,
+                            **palette_options)
     palette = poly.vertices.astype(np.float32)
     timings["palette"] = time.perf_counter() - start
 
@@ -195,6 +199,8 @@ def decompose(
         "max_error": max_error,
         "dtype": dtype,
         "method_options": method_options,
+        "palette_method": palette_method,
+        "palette_options": palette_options,
         "n_pixels": int(colour_set.offsets[-1]),
         "n_colours": len(colour_set.colours),
         "rmse": rmse,

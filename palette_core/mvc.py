@@ -9,13 +9,10 @@ and recoloring. Computer Graphics Forum 2019 (MVC weights for palettes).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numba
 import numpy as np
 
 from . import kernels
-from .colour_set import ColourSet
 from .errors import InputError
 from .polytope import Polytope, project_to_polytope
 
@@ -74,10 +71,3 @@ def rgb_to_mvc_weights(rgb: np.ndarray, poly: Polytope) -> np.ndarray:
     else:
         weights[:] = 1.0
     return weights.reshape(rgb.shape[:-1] + (len(poly.vertices),))
-
-
-def mvc_image_weights(colour_set: ColourSet, poly: Polytope) -> Iterator[np.ndarray]:
-    """(H, W, K) MVC weights per image, computed once per distinct colour and scattered."""
-    unique = rgb_to_mvc_weights(colour_set.colours, poly)
-    for i, image in enumerate(colour_set.images):
-        yield unique[colour_set.image_indices(i)].reshape(*image.opaque.shape, -1)

@@ -45,6 +45,16 @@ def check_options(methods: dict[str, Callable], name: str, what: str, options: d
     return function
 
 
+def spatial(function: Callable) -> Callable:
+    """Mark a weight method that takes whole images, not distinct colours (``weights``)."""
+    function.spatial = True
+    return function
+
+
+def is_spatial(function: Callable) -> bool:
+    return getattr(function, "spatial", False)
+
+
 def call_method(methods: dict[str, Callable], name: str, what: str, *inputs, **options):
     """Call method ``name`` of ``methods`` on ``inputs`` with its ``options`` (checked first)."""
     return check_options(methods, name, what, options)(*inputs, **options)

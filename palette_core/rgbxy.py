@@ -30,6 +30,7 @@ from .constants import RANK_TOL
 from .errors import InputError
 from .io import LoadedImage
 from .polytope import Polytope, project_to_polytope, qhull
+from .registry import spatial
 
 #: Pixels per chunk when building the hull and locating pixels.
 CHUNK_PIXELS = 1 << 18
@@ -198,6 +199,7 @@ def _barycentrics(tessellation: Delaunay, points: np.ndarray) -> tuple[np.ndarra
     return vertices, coords
 
 
+@spatial
 def rgbxy_image_weights(
     colour_set: ColourSet, poly: Polytope, *, spatial_scale: float = 1.0
 ) -> Iterator[np.ndarray]:

@@ -1,8 +1,16 @@
 """Weight methods: per-pixel additive weights of every image for a palette polytope.
 
-``WEIGHT_METHODS`` maps a name to a function ``(colour_set, poly, *, options) ->
-iterator of (H, W, K) weights``, one array per image in stitch order. Adding a
-method is one such function and one entry here (docs/architecture.md).
+``WEIGHT_METHODS`` maps a name to a method of one of two forms:
+
+- per colour, ``(colours (D, 3), poly, *, options) -> (D, K)``: a colour's weights
+  depend on the colour alone (``mvc``), so they are computed once per distinct colour
+  and scattered to the pixels; such methods also stream into Zarr stacks
+  (``collection``);
+- spatial, marked ``@spatial``, ``(colour_set, poly, *, options) -> iterator of
+  (H, W, K)``, one array per image in stitch order: the weights follow image
+  position too (``rgbxy``), so the method needs whole images and does not stream.
+
+Adding a method is one such function and one entry here (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -12,12 +20,13 @@ from collections.abc import Iterator
 import numpy as np
 
 from .colour_set import ColourSet
-from .mvc import mvc_image_weights
+from .errors import InputError
+from .mvc import rgb_to_mvc_weights
 from .polytope import Polytope
-from .registry import call_method, check_options
+from .registry import check_options, is_spatial
 from .rgbxy import rgbxy_image_weights
 
-WEIGHT_METHODS = {"mvc": mvc_image_weights, "rgbxy": rgbxy_image_weights}
+WEIGHT_METHODS = {"mvc": rgb_to_mvc_weights, "rgbxy": rgbxy_image_weights}
 
 
 def image_weights(colour_set: ColourSet, poly: Polytope, method: str = "mvc",
@@ -29,9 +38,39 @@ def image_weights(colour_set: ColourSet, poly: Polytope, method: str = "mvc",
     InputError
         If the method is unknown, an option is not the method's, or its value is invalid.
     """
-    return call_method(WEIGHT_METHODS, method, "weight method", colour_set, poly, **options)
+    function = check_options(WEIGHT_METHODS, method, "weight method", options)
+    if is_spatial(function):
+        return function(colour_set, poly, **options)
+    unique = function(colour_set.colours, poly, **options)
+    return (unique[colour_set.image_indices(i)].reshape(*image.opaque.shape, -1)
+            for i, image in enumerate(colour_set.images))
 
 
-def check_weight_method(method: str, options: dict) -> None:
-    """InputError if ``method`` is unknown or an option is not one of its own."""
-    check_options(WEIGHT_METHODS, method, "weight method", options)
+def colour_weights(colours: np.ndarray, poly: Polytope, method: str = "mvc",
+                   **options) -> np.ndarray:
+    """(D, K) weights of (D, 3) distinct colours by a per-colour ``method``: what a stream
+    of frames needs (``collection``).
+
+    Raises
+    ------
+    InputError
+        If the method is unknown, an option is not its own, or it is spatial.
+    """
+    function = check_weight_method(method, options, stream=True)
+    return function(colours, poly, **options)
+
+
+def check_weight_method(method: str, options: dict, stream: bool = False):
+    """The method ``method``, after checking that it exists, that every option is one of its
+    own and, for a ``stream`` of frames, that it is not spatial.
+
+    Raises
+    ------
+    InputError
+        Naming the method or option.
+    """
+    function = check_options(WEIGHT_METHODS, method, "weight method", options)
+    if stream and is_spatial(function):
+        raise InputError(f"weight method {method} needs whole images (its weights follow image "
+                         "position), so it cannot stream into a Zarr stack: write -o NAME.npz")
+    return function

@@ -394,3 +394,27 @@ def test_recoloured_videos_keep_their_container(tmp_path, rng, container, codec)
     with av.open(str(tmp_path / "out" / f"clip{container}")) as clip:
         assert clip.streams.video[0].codec_context.name == codec
         assert sum(1 for _ in clip.decode(video=0)) == 4
+
+
+# --- one weight-method registry for images in memory and streams ----------------------------
+
+def test_a_registered_per_colour_method_streams_and_a_spatial_one_is_refused(
+        photo_dir, tmp_path, capsys, monkeypatch):
+    import palette_core.weights as weights
+
+    def nearest(colours, poly):
+        """One-hot weights of the nearest palette colour."""
+        distance = np.linalg.norm(colours[:, None] - poly.vertices[None], axis=-1)
+        return np.eye(len(poly.vertices))[np.argmin(distance, axis=1)]
+
+    monkeypatch.setitem(weights.WEIGHT_METHODS, "nearest", nearest)
+    stream = decompose_collection([photo_dir], str(tmp_path / "w.zarr"), k=5, progress=False,
+                                  method="nearest")
+    memory = decompose([photo_dir], k=5, method="nearest")
+    stored = read_stack(tmp_path / "w.zarr")
+    assert stored.method == "nearest" and stored.names == memory.stack.names
+    assert np.array_equal(stored.palette, stream.palette.vertices.astype(np.float32))
+    for a, b in zip(stored.weights, memory.stack.weights):
+        assert np.array_equal(a, b) and set(np.unique(a)) <= {0, 1}
+    expect_error(decompose_cli.main, [str(photo_dir), "--method", "rgbxy", "-o",
+                                      str(tmp_path / "r.zarr")], "needs whole images", capsys)

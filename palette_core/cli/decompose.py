@@ -31,10 +31,12 @@ def build_parser() -> ArgumentParser:
                         help="smallest palette with reconstruction RMSE <= E (0-255 scale); "
                              "with -k, at most K colours")
     parser.add_argument("--palette-method", choices=sorted(PALETTE_METHODS), default="refined",
-                        help="palette method: refined (hull simplification, then fitted to the "
-                             "pixels; the default) or hull (Tan et al. 2017 alone)")
+                        help=f"palette method, one of {', '.join(PALETTE_METHODS)} (default "
+                             "refined: the hull's palette fitted to the pixels)")
+    add_method_options(parser, PALETTE_METHODS)
     parser.add_argument("--method", choices=sorted(WEIGHT_METHODS), default="mvc",
-                        help="weight method (default mvc)")
+                        help=f"weight method, one of {', '.join(WEIGHT_METHODS)} (default mvc); "
+                             "a Zarr stack takes the per-colour ones")
     add_method_options(parser, WEIGHT_METHODS)
     parser.add_argument("-o", "--output", default=DEFAULT_STACK,
                         help="weight stack to write (default weights.npz); its palette swatch "
@@ -72,7 +74,8 @@ def _run(args) -> int:
     if args.workers is not None or args.scheduler is not None or args.resume:
         raise InputError("--workers, --scheduler and --resume need -o NAME.zarr")
     result = decompose(args.inputs, args.k, args.max_error, args.method, args.dtype,
-                       given_options(args, WEIGHT_METHODS), args.palette_method, args.max_pixels)
+                       given_options(args, WEIGHT_METHODS), args.palette_method, args.max_pixels,
+                       given_options(args, PALETTE_METHODS))
     written = result.write(args.output, args.layers, args.force)
     stack = result.stack
     if result.hull_too_small:
@@ -93,12 +96,14 @@ def _run_collection(args) -> int:
     if not is_zarr(args.output):
         raise InputError(f"videos are decomposed into a Zarr stack: give -o NAME.zarr, not "
                          f"{args.output}")
-    if args.layers or given_options(args, WEIGHT_METHODS) or args.method != "mvc":
-        raise InputError("a Zarr stack holds mean value coordinates, without --layers")
+    if args.layers:
+        raise InputError("--layers needs -o NAME.npz: a Zarr stack is written without them")
     with dask_client(args.workers, args.scheduler) as client:
         done = decompose_collection(args.inputs, args.output, args.k, args.max_error,
                                     args.palette_method, args.dtype, args.max_pixels, client,
-                                    args.resume, args.force)
+                                    args.resume, args.force, method=args.method,
+                                    method_options=given_options(args, WEIGHT_METHODS),
+                                    palette_options=given_options(args, PALETTE_METHODS))
     palette = done.palette.vertices
     megapixels = done.counts.sum() / 1e6
     print(f"palette ({len(palette)} colours): {' '.join(palette_to_hex(palette))}")
