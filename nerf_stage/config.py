@@ -1,8 +1,8 @@
 """Training configuration: dataclasses saved as ``config.json`` beside the checkpoint.
 
 ``TrainConfig`` holds the settings every backbone shares and one nested dataclass
-per backbone (``GridConfig``, ``MLPConfig``); ``nerf-stage train`` makes one flag
-per field (``palette_core.cli.add_config_arguments``): ``--pretrain-iters``,
+per backbone (``backbones.GridConfig``, ``backbones.MLPConfig``); ``nerf-stage train``
+makes one flag per field (``palette_core.cli.add_config_arguments``): ``--pretrain-iters``,
 ``--grid-voxels``, ``--mlp-samples``, ... No torch here, so that the CLI can be
 built without the ``nerf`` extra.
 """
@@ -10,7 +10,6 @@ built without the ``nerf`` extra.
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import asdict, dataclass, field, fields
 from enum import StrEnum
@@ -18,22 +17,14 @@ from pathlib import Path
 
 from palette_core.errors import InputError
 
+from .backbones import BACKBONES, Backbone, GridConfig, MLPConfig
+from .checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, member, positive
+
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
 CONFIG_ENV = "NERF_STAGE_CONFIG"
 #: How many times finer than the field's grid baked renders read the colour part by default
 #: (``render --baked``): within 0.5 dB of the network on both simulated scenes (README).
 BAKE_FACTOR = 4
-#: Most voxels of a grid (2^25: 320^3), and most iterations of a stage: a config from
-#: elsewhere cannot make training allocate or run without end.
-MAX_VOXELS = 1 << 25
-MAX_ITERS = 10_000_000
-
-
-class Backbone(StrEnum):
-    """Radiance-field backbones (``fields.BACKBONES``); each has a nested config of its name."""
-
-    GRID = "grid"
-    MLP = "mlp"
 
 
 class Strategy(StrEnum):
@@ -42,66 +33,6 @@ class Strategy(StrEnum):
     TWO_STAGE = "two-stage"
     TRADITIONAL = "traditional"
     RGB = "rgb"
-
-
-@dataclass
-class GridConfig:
-    """Settings of the ``grid`` backbone (dense voxel grids and a small MLP head)."""
-
-    voxels: int = 96**3
-    """Voxels of the density and feature grids, spread over the scene box."""
-    features: int = 12
-    """Feature channels per voxel of the colour grid."""
-    view_frequencies: int | None = 4
-    """Frequencies of the view direction's encoding in the head; None (``none`` on the command
-    line): diffuse."""
-    deferred: bool = True
-    """Shade each ray once, from its features composited along it, rather than each sample
-    (deferred shading; docs/nerf.md, "Deferred shading"): faster, and a view-dependent head
-    then tells a thin wall's two sides apart. False: the paper's per-sample colours, which
-    ``render --baked`` needs."""
-    head_layers: int = 2
-    """Hidden layers of the head, each ``head_width`` wide (docs/nerf.md, "The colour
-    head")."""
-    lr: float = 0.1
-    """Adam learning rate of the voxel grids."""
-    network_lr: float = 1e-3
-    """Adam learning rate of the head."""
-    step_voxels: float = 1.0
-    """Ray-marching step of training, in voxels."""
-    render_step_voxels: float = 0.5
-    """Ray-marching step of renders, in voxels: finer than training's, so that surfaces that
-    training made thinner than a step render without bands."""
-    occupancy_every: int = 16
-    """Iterations between updates of the occupancy grid from the learned density."""
-    warmup_iters: int = 64
-    """Iterations before occupancy is refined from the learned density."""
-
-    def __post_init__(self):
-        if not isinstance(self.deferred, bool):
-            raise InputError(f"deferred must be true or false, got {self.deferred!r}")
-        _integers(self, 1, MAX_VOXELS, "voxels")
-        _integers(self, 1, 256, "features")
-        _integers(self, 1, 16, "head_layers")
-        _integers(self, 1, MAX_ITERS, "occupancy_every")
-        _integers(self, 0, MAX_ITERS, "warmup_iters")
-        if self.view_frequencies is not None:
-            _integers(self, 0, 16, "view_frequencies")
-        _positive(self, "lr", "network_lr", "step_voxels", "render_step_voxels")
-
-
-@dataclass
-class MLPConfig:
-    """Settings of the ``mlp`` backbone (the paper's vanilla NeRF)."""
-
-    samples: int = 96
-    """Samples per ray, evenly across the scene box."""
-    network_lr: float = 5e-4
-    """Adam learning rate."""
-
-    def __post_init__(self):
-        _integers(self, 1, 4096, "samples")
-        _positive(self, "network_lr")
 
 
 @dataclass
@@ -155,38 +86,37 @@ class TrainConfig:
     """Settings of the ``mlp`` backbone."""
 
     def __post_init__(self):
-        self.backbone = _member(Backbone, self.backbone, "backbone")
-        self.strategy = _member(Strategy, self.strategy, "strategy")
-        _at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight")
-        _positive(self, "lr_decay")
-        _integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")
-        _integers(self, 1, 1 << 20, "batch_rays")
-        _integers(self, 1, 8, "supersampling")
-        _integers(self, 1, 4096, "head_width")
-        _integers(self, 1, MAX_VOXELS, "occupancy_voxels")
-        _integers(self, 1, MAX_ITERS, "checkpoint_every")
-        _integers(self, 0, (1 << 63) - 1, "seed")
+        self.backbone = member(Backbone, self.backbone, "backbone")
+        self.strategy = member(Strategy, self.strategy, "strategy")
+        at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight")
+        positive(self, "lr_decay")
+        integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")
+        integers(self, 1, 1 << 20, "batch_rays")
+        integers(self, 1, 8, "supersampling")
+        integers(self, 1, 4096, "head_width")
+        integers(self, 1, MAX_VOXELS, "occupancy_voxels")
+        integers(self, 1, MAX_ITERS, "checkpoint_every")
+        integers(self, 0, (1 << 63) - 1, "seed")
         if self.pretrain_iters + self.finetune_iters == 0:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
         if self.strategy == Strategy.TWO_STAGE and self.finetune_iters == 0:
             raise InputError("the two-stage strategy needs finetune_iters > 0")
         background = self.background
         if (not isinstance(background, (tuple, list)) or len(background) != 3
-                or not all(_is_number(c) and 0 <= c <= 1 for c in background)):
+                or not all(is_number(c) and 0 <= c <= 1 for c in background)):
             raise InputError(f"background must be three numbers in [0, 1], got {background!r}")
         self.background = tuple(float(c) for c in background)
-        for name in ("grid", "mlp"):
-            kind = _NESTED[name]
-            if not isinstance(getattr(self, name), kind):
-                raise InputError(f"{name} must be {kind.__name__} settings")
+        for name, spec in BACKBONES.items():
+            if not isinstance(getattr(self, name), spec.settings):
+                raise InputError(f"{name} must be {spec.settings.__name__} settings")
 
     @property
     def total_iters(self) -> int:
         return self.pretrain_iters + self.finetune_iters
 
     @property
-    def backbone_config(self) -> GridConfig | MLPConfig:
-        """The nested settings of the chosen backbone."""
+    def backbone_config(self):
+        """The nested settings of the chosen backbone (``backbones.BACKBONES``)."""
         return getattr(self, self.backbone)
 
     def to_dict(self) -> dict:
@@ -257,38 +187,5 @@ class TrainConfig:
         return cls.from_dict(data, str(path))
 
 
-#: The nested backbone configs of ``TrainConfig``, by field name.
-_NESTED = {"grid": GridConfig, "mlp": MLPConfig}
-
-def _member(enum: type[StrEnum], value, name: str):
-    try:
-        return enum(value)
-    except ValueError:
-        raise InputError(f"{name} must be one of {', '.join(enum)}, got {value!r}") from None
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _integers(config, low: int, high: int, *names: str) -> None:
-    """InputError unless each field is an integer in [low, high] (limits keep a config from
-    elsewhere from asking for terabytes)."""
-    for name in names:
-        value = getattr(config, name)
-        if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
-            raise InputError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
-
-
-def _at_least_zero(config, *names: str) -> None:
-    for name in names:
-        value = getattr(config, name)
-        if not (_is_number(value) and 0 <= value < math.inf):
-            raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
-
-
-def _positive(config, *names: str) -> None:
-    for name in names:
-        value = getattr(config, name)
-        if not (_is_number(value) and 0 < value < math.inf):
-            raise InputError(f"{name} must be a finite number > 0, got {value!r}")
+#: The nested backbone settings of ``TrainConfig``, by field name.
+_NESTED = {name: spec.settings for name, spec in BACKBONES.items()}

@@ -6,37 +6,17 @@ render, and the scene is path traced again with that palette as the ground truth
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
-from skimage.metrics import structural_similarity
 
 from palette_core.basis import Basis
 
 from .editing import WeightRender, render_poses
 from .fields import RGB
+from .metrics import image_scores
 from .run import Run
 from .simulation import SimulationRecord
-
-
-def psnr_from_mse(mse: float) -> float:
-    """Peak signal-to-noise ratio in dB of a mean squared error of values in [0, 1]."""
-    return float("inf") if mse == 0 else -10 * math.log10(mse)
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """Peak signal-to-noise ratio in dB of images in [0, 1]."""
-    return psnr_from_mse(float(np.mean((np.asarray(a, np.float64) - b) ** 2)))
-
-
-def image_scores(predicted: np.ndarray, truth: np.ndarray) -> dict:
-    """Mean PSNR and SSIM (scikit-image) of (N, H, W, 3) images against the truth."""
-    return {
-        "psnr": float(np.mean([psnr(p, t) for p, t in zip(predicted, truth)])),
-        "ssim": float(np.mean([structural_similarity(p, t, channel_axis=-1, data_range=1.0)
-                               for p, t in zip(predicted, truth)])),
-    }
 
 
 def resimulated_views(simulation: SimulationRecord, palette: np.ndarray, poses: np.ndarray,
@@ -92,5 +72,4 @@ def evaluate(run: Run, dataset, edit: np.ndarray | None = None,
     return scores
 
 
-__all__ = ["evaluate", "image_scores", "psnr", "psnr_from_mse", "resimulated_views",
-           "rolled_palette"]
+__all__ = ["evaluate", "resimulated_views", "rolled_palette"]

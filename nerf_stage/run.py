@@ -19,10 +19,12 @@ from palette_core.basis import Basis, basis_terms, check_basis
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs
 
-from .cameras import Intrinsics, camera_rays
+from .cameras import Intrinsics
 from .config import BAKE_FACTOR, TrainConfig
 from .fields import RGB, Field, RaySampling, make_field
-from .rendering import OccupancyGrid, SceneBox, render_rays
+from .occupancy import OccupancyGrid
+from .rendering import render_rays
+from .scene_box import SceneBox, normalised_rays
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -103,12 +105,12 @@ class Run:
     @property
     def sampling(self) -> RaySampling:
         """How training samples rays."""
-        return self.field.sampling(self.config)
+        return self.field.sampling()
 
     @property
     def render_sampling(self) -> RaySampling:
         """How renders sample rays (``GridConfig.render_step_voxels``)."""
-        return self.field.sampling(self.config, render=True)
+        return self.field.sampling(render=True)
 
     def baked(self, factor: int = BAKE_FACTOR) -> Run:
         """This run with its field baked for fast rendering (``Field.baked``)."""
@@ -163,16 +165,6 @@ class Run:
                           .cpu().numpy())
             accs.append(torch.cat([a for _, a in outputs]).reshape(shape).mean(2).cpu().numpy())
         return np.stack(values), np.stack(accs)
-
-
-def normalised_rays(pose, intrinsics: Intrinsics, box: SceneBox, device, supersampling: int = 1):
-    """(H W, n^2, 3) origins in the normalised box and unit directions of one camera's n^2
-    rays a pixel (``cameras.camera_rays``), float32."""
-    origins, directions = camera_rays(pose, intrinsics, supersampling)
-    origins = (origins - box.centre) / box.scale
-    shape = (-1, supersampling ** 2, 3)
-    return (torch.as_tensor(origins.reshape(shape), dtype=torch.float32, device=device),
-            torch.as_tensor(directions.reshape(shape), dtype=torch.float32, device=device))
 
 
 def check_rundir(rundir: Path, resume: bool, force: bool) -> None:
@@ -239,6 +231,20 @@ def run_record(state: dict) -> RunRecord:
                      meta.get("frames_outside", False) is True)
 
 
+def restore(run: Run, state: dict) -> None:
+    """Load a checkpoint's trained state into ``run``, built with the checkpoint's config: the
+    field (its output layer as the checkpoint has it), the occupancy grid, and how far it
+    trained. What ``load_run`` and ``trainer.train(resume=True)`` share."""
+    output = state["output"]
+    if (output["kind"] != run.field.kind
+            or output["channels"] != run.field.output.out_features):
+        run.field.set_output(output["kind"], output["channels"])
+    run.field.load_state_dict(state["field"])
+    run.occupancy.load_state_dict(state["occupancy"])
+    saved = run_record(state)
+    run.record.iteration, run.record.log = saved.iteration, saved.log
+
+
 def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> Run:
     """The trained run in ``rundir``.
 
@@ -270,10 +276,12 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
             raise InputError(f"{path}: the scene box must be finite with positive extent")
         extent = torch.as_tensor(box.extent, dtype=torch.float32)
         field = make_field(config, extent, output["kind"], output["channels"])
-        field.load_state_dict(state["field"])
         occupancy = OccupancyGrid(extent, config.occupancy_voxels)
-        occupancy.load_state_dict(state["occupancy"])
-        return Run(config, field.to(device), occupancy.to(device), box, intrinsics, palette,
-                   basis, int(state["order"]), run_record(state))
+        run = Run(config, field, occupancy, box, intrinsics, palette, basis,
+                  int(state["order"]), run_record(state))
+        restore(run, state)
+        run.field.to(device)
+        run.occupancy.to(device)
+        return run
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise InputError(f"checkpoint {path} is malformed: {str(exc).splitlines()[0]}") from None

@@ -32,10 +32,11 @@ from palette_core.stack import WeightStack
 
 from .config import Strategy, TrainConfig
 from .data import Dataset, join_weights
-from .evaluation import psnr_from_mse
 from .fields import RGB, make_field
-from .fields.base import tone_map
-from .rendering import OccupancyGrid, march_rays, scene_box
+from .losses import recorded_rgb_loss, sparsity_loss, weight_loss
+from .metrics import psnr_from_mse
+from .occupancy import OccupancyGrid
+from .rendering import march_rays
 from .run import (
     CHECKPOINT,
     CONFIG,
@@ -43,13 +44,11 @@ from .run import (
     RunRecord,
     check_rundir,
     default_device,
-    normalised_rays,
     read_checkpoint,
-    run_record,
+    restore,
     save_checkpoint,
 )
-
-SPARSITY_SCALE = 0.01  # optical thickness of a step where the sparsity prior bends
+from .scene_box import normalised_rays, scene_box
 
 
 def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
@@ -95,11 +94,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
                              "start afresh with --force")
         if state["output"]["kind"] != run.field.kind:
             _start_finetune(run)
-        run.field.load_state_dict(state["field"])
-        run.occupancy.load_state_dict(state["occupancy"])
+        restore(run, state)
         generator.set_state(state["generator"])
-        saved = run_record(state)
-        run.record.iteration, run.record.log = saved.iteration, saved.log
         optimiser_states = state["optimisers"]
     start, log = run.record.iteration, run.record.log
     rundir.mkdir(parents=True, exist_ok=True)
@@ -119,9 +115,9 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
         if run.field.refines_occupancy and not finetuning:
-            backbone = config.backbone_config
-            if it >= backbone.warmup_iters and it % backbone.occupancy_every == 0:
-                run.occupancy.update(run.field, run.sampling.step, generator)
+            settings = run.field.settings
+            run.occupancy.update_every_n_steps(it, run.field, generator,
+                                               settings.occupancy_every, settings.warmup_iters)
         _decay_learning_rates(optimisers, config, it)
         batch = _pixel_batch(config, rays, generator)
         run.field.train()
@@ -144,49 +140,26 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
 def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Tensor, float]:
     """Loss of one batch of rays, and the PSNR of its colours (through the weights).
 
-    L2 on RGB while the output is RGB, else ``_weight_loss``; plus, while the density
+    L2 on RGB while the output is RGB, else ``losses.weight_loss``; plus, while the density
     trains, ``opacity_weight`` x L2 of the opacity against alpha and ``sparsity_weight``
-    x ``_sparsity``.
+    x ``losses.sparsity_loss``.
     """
     values, acc, samples = run.render_pixels(rays["origins"], rays["directions"], generator)
     if run.field.kind == RGB:
         rgb = values + (1 - acc[:, None]) * background
         loss = torch.mean((rgb - rays["rgb"]) ** 2)
     else:
-        loss = _weight_loss(run.field.kind, values, rays["weights"])
+        loss = weight_loss(run.field.kind, values, rays["weights"])
         rgb = values @ terms + (1 - acc[:, None]) * background
         if run.config.rgb_weight:
-            loss = loss + run.config.rgb_weight * _recorded_loss(rgb, rays["rgb"])
+            loss = loss + run.config.rgb_weight * recorded_rgb_loss(rgb, rays["rgb"])
     if acc.requires_grad:
         loss = loss + run.config.opacity_weight * torch.mean((acc - rays["alpha"]) ** 2)
         if run.config.sparsity_weight:
-            loss = loss + run.config.sparsity_weight * _sparsity(samples.optical)
+            loss = loss + run.config.sparsity_weight * sparsity_loss(samples.optical)
     with torch.no_grad():
         mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"]) ** 2))
     return loss, psnr_from_mse(max(mse, 1e-10))
-
-
-def _recorded_loss(rgb: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
-    """L2 of (R, 3) colours through the weights against the images, as a camera records them:
-    clipped at 1, so that a lamp of radiance 30 is not pulled down to the image's 1 (which
-    would move its weight onto the materials' channels)."""
-    return torch.mean((rgb.clamp(max=1) - images) ** 2)
-
-
-def _sparsity(optical: torch.Tensor) -> torch.Tensor:
-    """Cauchy sparsity prior: mean of log(1 + (tau / SPARSITY_SCALE)^2) over the (P,) optical
-    thicknesses tau of the samples (the sparsity prior of Plenoxels, Fridovich-Keil et al.
-    CVPR 2022, on thickness rather than density): steep for thin fog, flat for opaque
-    surfaces; 0 for no samples."""
-    return torch.log1p((optical / SPARSITY_SCALE) ** 2).sum() / max(1, len(optical))
-
-
-def _weight_loss(kind: str, values: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-    """L2 of (R, M) premultiplied weights; transport weights are tone-mapped first
-    (``fields.base.tone_map``), so that emitters do not drown the rest."""
-    if kind == Basis.TRANSPORT:
-        values, targets = tone_map(values), tone_map(targets)
-    return torch.mean((values - targets) ** 2)
 
 
 def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
@@ -257,7 +230,7 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
         fit.zero_grad()
         values = samples.composite_colours(field.colour_output(features), field.deferred)
         values = values.view(len(batch), pixel_rays, -1).mean(1)
-        loss = _weight_loss(field.kind, values, targets)
+        loss = weight_loss(field.kind, values, targets)
         loss.backward()
         return loss
 

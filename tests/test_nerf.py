@@ -9,25 +9,22 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage import rendering  # noqa: E402
+from nerf_stage import losses, rendering  # noqa: E402
+from nerf_stage import occupancy as occupancy_module  # noqa: E402
 from nerf_stage import trainer as trainer_module  # noqa: E402
 from nerf_stage.cameras import Intrinsics, orbit_poses, rig_poses  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.config import BAKE_FACTOR, GridConfig, MLPConfig, TrainConfig  # noqa: E402
 from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.editing import read_render  # noqa: E402
-from nerf_stage.evaluation import psnr  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
 from nerf_stage.fields.base import RaySampling  # noqa: E402
 from nerf_stage.fields.grid import _corners, _Trilinear  # noqa: E402
-from nerf_stage.rendering import (  # noqa: E402
-    OccupancyGrid,
-    composite,
-    render_rays,
-    scene_box,
-    visual_hull,
-)
+from nerf_stage.metrics import psnr  # noqa: E402
+from nerf_stage.occupancy import OccupancyGrid  # noqa: E402
+from nerf_stage.rendering import composite, render_rays  # noqa: E402
 from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.scene_box import scene_box, visual_hull  # noqa: E402
 from nerf_stage.trainer import train  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
@@ -90,9 +87,16 @@ def test_m_channel_compositing_equals_rgb_compositing_for_one_hot_weights(rng):
     assert torch.all(weights.sum(1) <= 1)
 
 
+def small_grid(extent, voxels: int, features: int, head_width: int, kind="rgb", channels=3):
+    """A per-sample, diffuse grid field of one hidden layer."""
+    settings = GridConfig(voxels=voxels, features=features, view_frequencies=None,
+                          deferred=False, head_layers=1)
+    return GridField(extent, settings, head_width, kind, channels)
+
+
 @pytest.mark.parametrize("kind", ["additive", "transport"])
-@pytest.mark.parametrize("make", [lambda k, c: MLPField(16, k, c),
-                                  lambda k, c: GridField([1, 1, 0.5], 6**3, 4, 16, k, c)])
+@pytest.mark.parametrize("make", [lambda k, c: MLPField(None, MLPConfig(), 16, k, c),
+                                  lambda k, c: small_grid([1, 1, 0.5], 6**3, 4, 16, k, c)])
 def test_output_activations(make, kind, rng):
     field = make(kind, 6)
     x = torch.as_tensor(rng.uniform(-1, 1, (50, 3)), dtype=torch.float32)
@@ -105,7 +109,7 @@ def test_output_activations(make, kind, rng):
 
 
 def test_grid_interpolation_has_the_gradient_of_a_weighted_gather(rng):
-    field = GridField([1, 1, 0.5], 5**3, 3, 8).double()
+    field = small_grid([1, 1, 0.5], 5**3, 3, 8).double()
     table = field.feature_grid  # (C, N)
     x = torch.as_tensor(rng.uniform(-1, 1, (40, 3)))
     index, weight = _corners(x, field.extent, field.resolution, field.CORNERS)
@@ -115,9 +119,8 @@ def test_grid_interpolation_has_the_gradient_of_a_weighted_gather(rng):
 
 
 def test_renders_march_at_half_the_training_step():
-    field, config = GridField([1, 1, 1], 8**3, 3, 8), TrainConfig()
-    assert field.sampling(config, render=True).step == pytest.approx(
-        field.sampling(config).step / 2)
+    field = GridField([1, 1, 1], GridConfig(voxels=8**3, features=3), 8)
+    assert field.sampling(render=True).step == pytest.approx(field.sampling().step / 2)
 
 
 def test_visual_hull_keeps_the_objects(still_life):
@@ -219,7 +222,7 @@ def test_only_per_sample_diffuse_grids_bake(cornell, tmp_path):
 
 
 def test_transport_loss_tone_maps_emitters():
-    loss = trainer_module._weight_loss
+    loss = losses.weight_loss
     lamp, twice = torch.tensor([[30.0, 0.2]]), torch.tensor([[60.0, 0.2]])
     assert loss("transport", twice, lamp) < 2e-4  # a lamp at twice its radiance: both white
     assert loss("transport", torch.tensor([[1.0, 0.0]]), torch.zeros(1, 2)) == 0.125
@@ -229,10 +232,10 @@ def test_transport_loss_tone_maps_emitters():
 def test_colours_through_the_weights_are_compared_as_recorded():
     images = torch.tensor([[1.0, 1.0, 1.0], [0.5, 0.5, 0.5]])
     lamp = torch.tensor([[30.0, 30.0, 30.0], [0.5, 0.5, 0.5]], requires_grad=True)
-    loss = trainer_module._recorded_loss(lamp, images)
+    loss = losses.recorded_rgb_loss(lamp, images)
     loss.backward()
     assert loss == 0 and not lamp.grad.any()  # a saturated pixel is matched by any radiance
-    assert trainer_module._recorded_loss(torch.full((1, 3), 0.25), images[1:]) == 0.0625
+    assert losses.recorded_rgb_loss(torch.full((1, 3), 0.25), images[1:]) == 0.0625
 
 
 @pytest.mark.parametrize("scene", ["cornell", "still_life"])
@@ -250,7 +253,7 @@ def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_p
     def batch_loss():
         with torch.no_grad():
             values, _, _ = run.render_pixels(rays["origins"], rays["directions"])
-            return float(trainer_module._weight_loss(run.field.kind, values, rays["weights"]))
+            return float(losses.weight_loss(run.field.kind, values, rays["weights"]))
 
     trainer_module._start_finetune(run)
     fresh = batch_loss()
@@ -476,7 +479,7 @@ def test_deferred_is_a_boolean():
 def test_renders_read_the_feature_grid_as_it_is_after_each_step(rng):
     """Reads in eval mode without gradients gather from a row-major copy of the grid
     (``GridField._feature_rows``): it must follow optimiser steps and loading."""
-    field = GridField([1, 1, 0.5], 5**3, 3, 8)
+    field = small_grid([1, 1, 0.5], 5**3, 3, 8)
     x = torch.as_tensor(rng.uniform(-1, 1, (40, 3)), dtype=torch.float32)
     optimiser = torch.optim.Adam(field.parameters(), lr=0.1, fused=True)
     before = []
@@ -498,10 +501,10 @@ def test_renders_read_the_feature_grid_as_it_is_after_each_step(rng):
 
 def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
     optical = torch.tensor([0.0, 0.005, 0.01, 3.0, 30.0], requires_grad=True)
-    trainer_module._sparsity(optical).backward()
+    losses.sparsity_loss(optical).backward()
     fog, surface = optical.grad[1:3], optical.grad[3:]
     assert optical.grad[0] == 0 and fog.min() > 20 * surface.max() > 0
-    assert trainer_module._sparsity(torch.zeros(0)) == 0
+    assert losses.sparsity_loss(torch.zeros(0)) == 0
 
 
 class _Sphere:
@@ -582,7 +585,7 @@ def test_empty_space_is_skipped_in_whole_steps_and_renders_stay_the_same(monkeyp
     assert occupancy.skip_empty(corner, x, entry, exit_, 0.01) == exit_  # far from every cell
     with torch.no_grad():
         skipped = render_rays(_Sphere(), occupancy, origins, directions, RaySampling(step=0.01))
-        monkeypatch.setattr(rendering, "MAX_SKIPS", 0)
+        monkeypatch.setattr(occupancy_module, "MAX_SKIPS", 0)
         marched = render_rays(_Sphere(), occupancy, origins, directions, RaySampling(step=0.01))
     assert torch.allclose(skipped[0], marched[0], atol=1e-4)
     assert torch.allclose(skipped[1].opacity, marched[1].opacity, atol=1e-4)

@@ -1,25 +1,26 @@
-"""Radiance-field backbones behind the abstract ``Field`` (``base``), by name.
+"""Radiance-field backbones behind the abstract ``Field`` (``base``).
 
-Adding a backbone is one module here with a ``Field`` subclass, one entry in
-``BACKBONES``, and its settings in ``nerf_stage.config`` (docs/architecture.md).
+Which backbones exist, their settings and where their fields live is the torch-free
+table ``nerf_stage.backbones.BACKBONES``; adding a backbone is one module here with a
+``Field`` subclass and one entry there (docs/architecture.md).
 """
 
 from __future__ import annotations
 
 import torch
 
-from ..config import Backbone
+from ..backbones import BACKBONES
 from .base import ACTIVATIONS, RGB, Field, RaySampling, positional_encoding
 from .grid import GridField
 from .mlp import MLPField
 
-BACKBONES: dict[str, type[Field]] = {Backbone.GRID: GridField, Backbone.MLP: MLPField}
-
 
 def make_field(config, extent: torch.Tensor, kind: str, channels: int) -> Field:
-    """The backbone ``config.backbone`` with an output of ``channels`` and activation ``kind``."""
-    return BACKBONES[config.backbone].from_config(config, extent, kind, channels)
+    """The backbone ``config.backbone`` of a ``TrainConfig``, built from its settings section,
+    with an output of ``channels`` and activation ``kind``."""
+    field_class = BACKBONES[config.backbone].field_class()
+    return field_class(extent, config.backbone_config, config.head_width, kind, channels)
 
 
-__all__ = ["ACTIVATIONS", "BACKBONES", "RGB", "Field", "GridField", "MLPField", "RaySampling",
+__all__ = ["ACTIVATIONS", "RGB", "Field", "GridField", "MLPField", "RaySampling",
            "make_field", "positional_encoding"]

@@ -1,6 +1,6 @@
 """The abstract radiance field: a density part and a colour part.
 
-A backbone takes positions in the normalised scene box (``rendering.SceneBox``)
+A backbone takes positions in the normalised scene box (``scene_box.SceneBox``)
 and exposes the split that two-stage training needs:
 
 - ``density(x) -> (sigma, h)``: the density part. ``sigma`` (P,) is per unit of
@@ -12,8 +12,9 @@ and exposes the split that two-stage training needs:
 
 ``set_output(kind, channels)`` puts in a new output layer, as the paper's
 fine-tuning stage does; ``density_parameters`` and ``colour_parameters`` split the
-parameters so that the density part can be frozen. ``sampling`` says how rays are
-sampled for this backbone. Adding a backbone: docs/architecture.md.
+parameters so that the density part can be frozen. A field is built from its own
+settings (its section of ``TrainConfig``, ``backbones``), which also say how rays are
+sampled for it (``sampling``). Adding a backbone: docs/architecture.md.
 """
 
 from __future__ import annotations
@@ -67,8 +68,13 @@ def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
 class Field(nn.Module, ABC):
     """A backbone: subclasses build their layers, then call ``_init_output`` last.
 
+    Subclasses take ``(extent, settings, head_width, kind, channels)``: ``extent`` (3,) the
+    half sizes of the normalised box, ``settings`` their section of ``TrainConfig``.
+
     Attributes
     ----------
+    settings : dataclass
+        The backbone's settings (``backbones.BACKBONES``).
     kind : str
         ``RGB`` or a ``Basis``: what the output layer predicts.
     head_width : int
@@ -83,11 +89,6 @@ class Field(nn.Module, ABC):
     head_width: int
     refines_occupancy: bool = False
     deferred: bool = False
-
-    @classmethod
-    @abstractmethod
-    def from_config(cls, config, extent: torch.Tensor, kind: str, channels: int) -> Field:
-        """The backbone for a ``TrainConfig``, over a box of half sizes ``extent`` (3,)."""
 
     @abstractmethod
     def density(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -106,13 +107,12 @@ class Field(nn.Module, ABC):
         """The parameters of the colour part, the output layer last."""
 
     @abstractmethod
-    def sampling(self, config, render: bool = False) -> RaySampling:
-        """How rays are sampled for this field under a ``TrainConfig``, in training or, with
-        ``render``, in renders."""
+    def sampling(self, render: bool = False) -> RaySampling:
+        """How rays are sampled for this field in training or, with ``render``, in renders."""
 
     def baked(self, occupancy, factor: int) -> nn.Module:
         """A copy for fast rendering whose colour part is a table look-up, ``factor`` times
-        finer than the field's grid, where ``occupancy`` (``rendering.OccupancyGrid``) is
+        finer than the field's grid, where ``occupancy`` (``occupancy.OccupancyGrid``) is
         occupied (``grid.BakedGrid``); InputError for backbones that cannot be baked."""
         raise InputError(f"a {type(self).__name__} cannot be baked (only the grid backbone with "
                          "per-sample diffuse colours can)")

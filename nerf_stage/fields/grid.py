@@ -14,6 +14,7 @@ from torch import nn
 from palette_core.basis import Basis
 from palette_core.errors import InputError
 
+from ..backbones import GridConfig
 from .base import RGB, Field, RaySampling, inverse_tone_map, positional_encoding, tone_map
 
 MAX_BAKE_FACTOR = 4  # a baked table grows with the factor's cube
@@ -93,20 +94,15 @@ class GridField(Field):
     ----------
     extent : (3,) float
         Half sizes of the normalised scene box (the largest is 1).
-    voxels : int
-        About this many voxels, cubic, spread over the box.
-    direction_frequencies : int or None
-        Positional encoding of the view direction fed to the head; None for a
-        view-independent (diffuse) colour.
-    deferred : bool
-        Shade each ray once, at its composited features (``Field.deferred``).
-    head_layers : int
-        Hidden layers of the head, ReLU after each.
+    settings : backbones.GridConfig
+        Voxels (about this many, cubic, spread over the box), feature channels, the
+        head's view encoding and layers, deferred shading, and the ray-marching steps.
 
     Examples
     --------
     >>> from palette_core.basis import Basis
-    >>> field = GridField([1.0, 0.5, 1.0], 1000, 4, kind=Basis.TRANSPORT, channels=6)
+    >>> settings = GridConfig(voxels=1000, features=4)
+    >>> field = GridField([1.0, 0.5, 1.0], settings, kind=Basis.TRANSPORT, channels=6)
     >>> field.resolution.tolist()
     [13, 6, 13]
     >>> sigma, h = field.density(torch.zeros(2, 3))
@@ -116,10 +112,12 @@ class GridField(Field):
 
     refines_occupancy = True
 
-    def __init__(self, extent, voxels: int = 96**3, features: int = 12, head_width: int = 128,
-                 kind: str = RGB, channels: int = 3, direction_frequencies: int | None = None,
-                 deferred: bool = False, head_layers: int = 1):
+    def __init__(self, extent, settings: GridConfig | None = None, head_width: int = 128,
+                 kind: str = RGB, channels: int = 3):
         super().__init__()
+        self.settings = settings = settings or GridConfig()
+        voxels, features = settings.voxels, settings.features
+        direction_frequencies, head_layers = settings.view_frequencies, settings.head_layers
         extent = torch.as_tensor(extent, dtype=torch.float32)
         per_unit = (voxels / float(torch.prod(2 * extent))) ** (1 / 3)
         self.register_buffer("extent", extent)
@@ -130,7 +128,7 @@ class GridField(Field):
         self.voxels_per_unit = per_unit
         self.head_width = head_width
         self.direction_frequencies = direction_frequencies
-        self.deferred = deferred
+        self.deferred = settings.deferred
         n = int(torch.prod(self.resolution))
         self.density_grid = nn.Parameter(torch.zeros(1, n))  # (C, N) tables of ``_Trilinear``
         self.feature_grid = nn.Parameter(torch.zeros(features, n))
@@ -187,8 +185,8 @@ class GridField(Field):
     def grid_parameters(self) -> list[nn.Parameter]:
         return [self.density_grid, self.feature_grid]
 
-    def sampling(self, config, render: bool = False) -> RaySampling:
-        grid = config.grid
+    def sampling(self, render: bool = False) -> RaySampling:
+        grid = self.settings
         return RaySampling(step=(grid.render_step_voxels if render else grid.step_voxels)
                            / self.voxels_per_unit)
 
@@ -202,11 +200,6 @@ class GridField(Field):
             raise InputError(f"the bake factor must be in [1, {MAX_BAKE_FACTOR}], got {factor}")
         return BakedGrid(self, occupancy, factor)
 
-    @classmethod
-    def from_config(cls, config, extent, kind: str, channels: int) -> GridField:
-        grid = config.grid
-        return cls(extent, grid.voxels, grid.features, config.head_width, kind, channels,
-                   grid.view_frequencies, grid.deferred, grid.head_layers)
 
 
 class BakedGrid(nn.Module):
@@ -256,6 +249,7 @@ class BakedGrid(nn.Module):
         self.register_buffer("resolution", fine)
         self.register_buffer("CORNERS", field.CORNERS)
         self.voxels_per_unit = field.voxels_per_unit
+        self.settings = field.settings
 
     def density(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Densities and, as ``h``, the (P, C) outputs read at the same corners."""

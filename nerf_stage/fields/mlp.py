@@ -13,12 +13,14 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..backbones import MLPConfig
 from .base import RGB, Field, RaySampling, positional_encoding
 
 
 class MLPField(Field):
     """Vanilla NeRF: 8 x 256 trunk with a skip, density and feature layers (the density part),
     then a view-dependent layer of ``head_width`` and the output layer (the colour part).
+    Positions are encoded as they are: the box's ``extent`` is not needed.
 
     Examples
     --------
@@ -29,10 +31,11 @@ class MLPField(Field):
     [1.0, 1.0]
     """
 
-    def __init__(self, head_width: int = 128, kind: str = RGB, channels: int = 3,
-                 depth: int = 8, width: int = 256, skip: int = 4,
-                 position_frequencies: int = 10, direction_frequencies: int = 4):
+    def __init__(self, extent=None, settings: MLPConfig | None = None, head_width: int = 128,
+                 kind: str = RGB, channels: int = 3, depth: int = 8, width: int = 256,
+                 skip: int = 4, position_frequencies: int = 10, direction_frequencies: int = 4):
         super().__init__()
+        self.settings = settings = settings or MLPConfig()
         self.head_width = head_width
         self.position_frequencies = position_frequencies
         self.direction_frequencies = direction_frequencies
@@ -65,9 +68,5 @@ class MLPField(Field):
     def colour_parameters(self) -> list[nn.Parameter]:
         return [*self.view.parameters(), *self.output.parameters()]
 
-    def sampling(self, config, render: bool = False) -> RaySampling:
-        return RaySampling(count=config.mlp.samples)
-
-    @classmethod
-    def from_config(cls, config, extent, kind: str, channels: int) -> MLPField:
-        return cls(config.head_width, kind, channels)
+    def sampling(self, render: bool = False) -> RaySampling:
+        return RaySampling(count=self.settings.samples)

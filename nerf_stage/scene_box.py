@@ -1,0 +1,116 @@
+"""The scene box: the axis-aligned box around what the cameras see, in which every field
+lives, and rays normalised into it.
+
+References
+----------
+A. Laurentini. The visual hull concept for silhouette-based image understanding. IEEE
+PAMI 16(2), 1994 (carving space that a transparent pixel shows empty).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.ndimage import maximum_filter
+
+from .cameras import Intrinsics, camera_rays
+
+CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
+
+
+@dataclass
+class SceneBox:
+    """Axis-aligned box around the scene; positions are normalised as (x - centre) / scale.
+
+    Attributes
+    ----------
+    centre : (3,) float
+    half : (3,) float
+        World half sizes.
+    """
+
+    centre: np.ndarray
+    half: np.ndarray
+
+    @property
+    def scale(self) -> float:
+        return float(np.max(self.half))
+
+    @property
+    def extent(self) -> np.ndarray:
+        """(3,) half sizes of the normalised box (the largest is 1)."""
+        return self.half / self.scale
+
+    def to_dict(self) -> dict:
+        return {"centre": self.centre.tolist(), "half": self.half.tolist()}
+
+
+def scene_box(poses: np.ndarray, intrinsics: Intrinsics, alpha: np.ndarray,
+              resolution: int = 64) -> SceneBox:
+    """A box around what the cameras see.
+
+    Starts from the cube around the point nearest to all optical axes, with half
+    size 0.75 x the nearest camera's distance; when the images have transparent
+    pixels, shrinks it to the visual hull carved from them.
+    """
+    axes = -poses[:, :3, 2]
+    eyes = poses[:, :3, 3]
+    projector = np.eye(3) - axes[:, :, None] * axes[:, None, :]  # (N, 3, 3)
+    centre = np.linalg.lstsq(projector.sum(0), np.einsum("nij,nj->i", projector, eyes),
+                             rcond=None)[0]
+    half = 0.75 * np.linalg.norm(eyes - centre, axis=1).min()
+    box = SceneBox(centre, np.full(3, half))
+    if alpha.min() >= CARVE_ALPHA:
+        return box
+    cells = np.argwhere(visual_hull(box, np.full(3, resolution), poses, intrinsics, alpha))
+    if len(cells) == 0:
+        return box
+    cell = 2 * half / resolution
+    lo = centre - half + (cells.min(0) - 1) * cell
+    hi = centre - half + (cells.max(0) + 2) * cell
+    lo, hi = np.maximum(lo, centre - half), np.minimum(hi, centre + half)
+    return SceneBox((lo + hi) / 2, (hi - lo) / 2)
+
+
+def visual_hull(box: SceneBox, resolution: np.ndarray, poses: np.ndarray,
+                intrinsics: Intrinsics, alpha: np.ndarray) -> np.ndarray:
+    """(X, Y, Z) bool: cells of ``box`` that no view shows as transparent.
+
+    A cell is carved when its centre projects inside a view onto a pixel whose
+    alpha, dilated by the cell's footprint in that view, is below ``CARVE_ALPHA``.
+    """
+    axes = [np.linspace(-1, 1, n, endpoint=False) + 1 / n for n in resolution]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    points = box.centre + grid * box.half
+    keep = np.ones(len(points), bool)
+    radius = 0.5 * float(np.linalg.norm(2 * box.half / resolution))  # of a cell's bounding ball
+    for pose, mask in zip(poses, alpha):
+        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        depth = -local[:, 2]
+        ahead = depth > radius
+        safe = np.where(ahead, depth, 1.0)
+        u = intrinsics.cx + intrinsics.fx * local[:, 0] / safe
+        v = intrinsics.cy - intrinsics.fy * local[:, 1] / safe
+        inside = ahead & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+        ui = np.clip(u.astype(np.int64), 0, intrinsics.width - 1)
+        vi = np.clip(v.astype(np.int64), 0, intrinsics.height - 1)
+        footprint = np.ceil(intrinsics.fx * radius / safe).astype(np.int64)  # pixels
+        carved = np.zeros(len(points), bool)
+        for pixels in np.unique(footprint[inside]):
+            dilated = maximum_filter(mask, size=2 * int(pixels) + 1)
+            at = inside & (footprint == pixels)
+            carved[at] = dilated[vi[at], ui[at]] < CARVE_ALPHA
+        keep &= ~carved
+    return keep.reshape(tuple(resolution))
+
+
+def normalised_rays(pose, intrinsics: Intrinsics, box: SceneBox, device, supersampling: int = 1):
+    """(H W, n^2, 3) origins in the normalised box and unit directions of one camera's n^2
+    rays a pixel (``cameras.camera_rays``), float32."""
+    origins, directions = camera_rays(pose, intrinsics, supersampling)
+    origins = (origins - box.centre) / box.scale
+    shape = (-1, supersampling ** 2, 3)
+    return (torch.as_tensor(origins.reshape(shape), dtype=torch.float32, device=device),
+            torch.as_tensor(directions.reshape(shape), dtype=torch.float32, device=device))
