@@ -33,8 +33,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_collection import mosaic, photos  # noqa: E402
 
 from palette_core.decompose import decompose  # noqa: E402
-from studio.app import Studio, camera_pose, to_bytes  # noqa: E402
+from studio.app import Studio  # noqa: E402
 from studio.photos import PhotoTarget  # noqa: E402
+from studio.pictures import camera_pose, to_bytes  # noqa: E402
 from studio.scene import SceneTarget  # noqa: E402
 from tests import browser  # noqa: E402
 
@@ -104,7 +105,7 @@ def bench_scene(driver, run: Path, out: Path, n: int) -> None:
     try:
         driver.get(studio.url)
         rows = target.run.intrinsics.height
-        view = browser.wait_for(lambda: next(iter(studio.views.values()), None))
+        view = browser.wait_for(lambda: next(iter(studio.view.viewports.values()), None))
         browser.wait_for(lambda: view.drawn[0] == rows, timeout=60)
         time.sleep(2)
         index = dominant_colour(studio, view.render.weights[0])

@@ -15,9 +15,10 @@ from palette_core.errors import InputError, OutputExists  # noqa: E402
 from palette_core.palette_file import read_palette_json, write_palette_json  # noqa: E402
 from palette_core.stack import WeightStack, write_stack  # noqa: E402
 from studio import PaletteEditor  # noqa: E402
-from studio.app import Studio, letterbox, to_bytes  # noqa: E402
+from studio.app import Studio  # noqa: E402
 from studio.cli import main as studio_main  # noqa: E402
 from studio.photos import PhotoTarget, downsample  # noqa: E402
+from studio.pictures import letterbox, to_bytes  # noqa: E402
 
 from .helpers import expect_error  # noqa: E402
 
@@ -139,8 +140,8 @@ def test_studio_edits_and_serves(tmp_path, rng):
         assert studio.pickers[0].value == (0, 0, 0)
         studio._apply(studio.editor.undo)
         assert studio.pickers[0].value == tuple(to_bytes(studio.editor.original[0]).tolist())
-        studio._show_image(2)
-        assert studio.chooser.value == "p2.png"
+        studio.view.show_image(2)
+        assert studio.view.chooser.value == "p2.png"
     finally:
         studio.stop()
 
@@ -226,7 +227,7 @@ def test_sockets_only_from_the_studios_own_page(studio, capsys):
 def test_no_share_url_and_bounded_views(studio, capsys):
     from types import SimpleNamespace
 
-    from studio.app import MAX_ASPECT, bounded_aspect
+    from studio.pictures import MAX_ASPECT, bounded_aspect
 
     assert studio.server.request_share_url() is None
     assert "refused a request for a public share URL" in capsys.readouterr().err
@@ -259,9 +260,9 @@ def test_the_panel_as_a_new_user_sees_it(studio):
     studio.before.value = False
     studio._apply(lambda: None)
     assert studio.pickers[0].value == (0, 0, 0)
-    assert studio.strip_buttons.options == ("[1]", "2", "3")
-    studio._show_image(1)
-    assert studio.strip_buttons.options == ("1", "[2]", "3")
+    assert studio.view.strip_buttons.options == ("[1]", "2", "3")
+    studio.view.show_image(1)
+    assert studio.view.strip_buttons.options == ("1", "[2]", "3")
     assert not studio.server.scene.world_axes.visible
 
 
@@ -324,7 +325,7 @@ def test_scene_turntable_export(scene_run, tmp_path):
 
 def test_a_hundred_images_open_without_reading_them(tmp_path, rng):
     """Only the image on screen and the thumbnails beside it are read."""
-    from studio.app import STRIP
+    from studio.photo_view import STRIP
 
     class Counting(list):
         reads = 0
@@ -339,7 +340,7 @@ def test_a_hundred_images_open_without_reading_them(tmp_path, rng):
     studio = Studio(PhotoTarget(stack, tmp_path / "w.npz"), port=0)
     try:
         assert Counting.reads == 0
-        studio._show_image(50)
+        studio.view.show_image(50)
         assert 0 < Counting.reads <= 1 + STRIP
     finally:
         studio.stop()

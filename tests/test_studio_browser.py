@@ -13,8 +13,9 @@ pytest.importorskip("viser")
 pytest.importorskip("selenium")
 
 from palette_core.stack import WeightStack, write_stack  # noqa: E402
-from studio.app import Studio, to_bytes  # noqa: E402
+from studio.app import Studio  # noqa: E402
 from studio.photos import PhotoTarget  # noqa: E402
+from studio.pictures import to_bytes  # noqa: E402
 
 from . import browser  # noqa: E402
 
@@ -74,7 +75,7 @@ def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monk
 
     def settled():
         """The refined view, once the camera has not moved for a second."""
-        views = list(studio.views.values())
+        views = list(studio.view.viewports.values())
         render = views[0].render if views else None
         if render is None or render.weights.shape[1] != rows:
             return None

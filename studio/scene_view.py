@@ -1,0 +1,119 @@
+"""Scene mode of the page: every tab's viewport renders the weight NeRF from its own camera,
+coarse while it moves and at the training resolution once it stops, and recolours the
+cached weights on palette edits without the network (``app.ModeView``)."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .pictures import bounded_aspect, camera_pose, to_bytes
+from .scene import MAX_TURNTABLE, SceneTarget
+
+PREVIEW_ROWS = 24  # rows of a scene view while the camera moves
+SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
+
+
+class SceneView:
+    """A trained run on the page of ``studio`` (an ``app.Studio``), one ``Viewport`` a tab."""
+
+    export_label, export_button = "turntable GIF", "export turntable"
+
+    def __init__(self, studio, target: SceneTarget):
+        self.studio, self.target = studio, target
+        self.viewports: dict[int, Viewport] = {}
+
+    def default_palette_path(self) -> Path:
+        return self.target.path / "edited_palette.json"
+
+    def build_panel(self, gui) -> None:
+        """The camera is the browser's: no panel of its own."""
+
+    def build_export_options(self, gui) -> None:
+        self.turntable_views = gui.add_number("turntable views", initial_value=36, min=1,
+                                              max=MAX_TURNTABLE, step=1)
+
+    def connect(self, client) -> None:
+        pose = self.target.home_pose()
+        client.camera.fov = self.target.fov_y
+        client.camera.up_direction = (0.0, 1.0, 0.0)
+        client.camera.position = pose[:3, 3]
+        client.camera.look_at = self.target.centre
+        self.open_viewports()
+        self.viewports[client.client_id] = Viewport(self.studio, self.target, client)
+
+    def redraw(self) -> None:
+        for viewport in self.open_viewports():
+            viewport.recolour()
+
+    def export(self, client, path: str | os.PathLike, palette: np.ndarray,
+               force: bool) -> list[Path]:
+        viewport = self.viewports[client.client_id]
+        return self.target.export(path, palette, camera_pose(client.camera),
+                                  viewport.intrinsics(), int(self.turntable_views.value), force)
+
+    def stop(self) -> None:
+        for viewport in list(self.viewports.values()):
+            viewport.stop()
+
+    def open_viewports(self) -> list[Viewport]:
+        """The viewports of the tabs still open (those of closed tabs are stopped, dropped)."""
+        open_tabs = self.studio.server.get_clients()
+        for gone in [cid for cid in self.viewports if cid not in open_tabs]:
+            self.viewports.pop(gone).stop()
+        return list(self.viewports.values())
+
+
+class Viewport:
+    """One tab's view in scene mode: renders on camera moves, low resolution while the
+    camera moves and at the training resolution once it stops; recolours without the
+    network on palette changes."""
+
+    def __init__(self, studio, target: SceneTarget, client):
+        self.studio, self.target, self.client = studio, target, client
+        self.render = None  # the WeightRender on screen
+        self.drawn = (0, 0.0)  # rows of the last view drawn, and when (time.perf_counter)
+        self.moved = threading.Event()
+        self.running = True
+        client.camera.on_update(lambda camera: self.moved.set())
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+        self.moved.set()
+
+    def stop(self) -> None:
+        self.running = False
+        self.moved.set()
+
+    def intrinsics(self, rows: int | None = None):
+        return self.target.intrinsics(bounded_aspect(self.client.camera),
+                                      rows or self.target.run.intrinsics.height)
+
+    def _loop(self) -> None:
+        while self.running:
+            self.moved.wait()
+            self.moved.clear()
+            if not self.running:
+                return
+            self._draw(PREVIEW_ROWS)
+            if not self.moved.wait(SETTLE_S):
+                self._draw(None)
+
+    def _draw(self, rows: int | None) -> None:
+        try:
+            pose = camera_pose(self.client.camera)
+            self.render = self.target.render(pose, self.intrinsics(rows))
+        except Exception as exc:  # a tab that went away, or a render that failed
+            self.studio.say(f"**error:** {exc}")
+            return
+        self.recolour()
+        self.drawn = (self.render.weights.shape[1], time.perf_counter())
+
+    def recolour(self) -> None:
+        if self.render is None:
+            return
+        image = self.render.recolor(self.studio.shown_palette)[0]
+        self.client.scene.set_background_image(to_bytes(image), format="png")
