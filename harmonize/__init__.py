@@ -11,8 +11,8 @@ from .batch import StackHarmonization, harmonize_stack
 from .fit import TemplateFit, fit_all_templates, fit_template, palette_shares, template_cost
 from .hcl import hcl_to_srgb, hcl_to_srgb_in_gamut, in_srgb_gamut, srgb_to_hcl
 from .project import Harmonization, harmonize_palette, harmonize_with_fit, project_palette
-from .render import contact_sheet, hue_wheel
 from .templates import TEMPLATES, Template, get_template
+from .wheel import contact_sheet, hue_wheel
 
 __all__ = [
     "TEMPLATES",

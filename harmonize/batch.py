@@ -13,15 +13,15 @@ from palette_core.basis import weights_to_rgb
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable, inside, save_image
 from palette_core.palette_file import palette_to_hex
-from palette_core.render import palette_swatch
 from palette_core.stack import WeightStack, is_zarr, write_stack
 from palette_core.stack.zarr import check_store_output
+from palette_core.swatch import palette_swatch
 
 from .fit import TemplateFit, fit_all_templates, palette_shares
 from .hcl import srgb_to_hcl
 from .project import Harmonization, check_strength, harmonize_with_fit
-from .render import contact_sheet, hue_wheel
 from .templates import TEMPLATES, get_template
+from .wheel import contact_sheet, hue_wheel
 
 #: Template choices beyond the names: the least cost, or every template.
 BEST, ALL = "best", "all"

@@ -21,8 +21,8 @@ from palette_core.basis import Basis, n_terms, weights_to_rgb
 from palette_core.errors import InputError, OutputExists
 from palette_core.outputs import atomic_outputs, inside, publish_folder, save_image
 from palette_core.palette_file import read_palette_json
-from palette_core.render import palette_swatch
 from palette_core.stack import NpzReader, WeightStack, check_names
+from palette_core.swatch import palette_swatch
 
 from .cameras import Intrinsics, orbit_poses
 from .fields import RGB

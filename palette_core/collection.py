@@ -33,7 +33,6 @@ from .palette_file import palette_paths, write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .polytope import Polytope
 from .registry import check_options
-from .render import palette_swatch
 from .sources import Source, find_sources, read_frames
 from .stack import WeightStack, check_dtype, stored_weights
 from .stack.zarr import (
@@ -44,6 +43,7 @@ from .stack.zarr import (
     publish_store,
     remove_store,
 )
+from .swatch import palette_swatch
 from .weights import check_weight_method, colour_weights
 
 #: Megapixels of one task: a whole image, or a run of frames of one video.

@@ -12,7 +12,7 @@ EDGE_TOL = 1e-10
 
 #: A colour closer than this to a face plane (and inside the face) takes
 #: barycentric weights of the face, reproducing it to within this distance;
-#: farther away the mean-vector form of MVC in ``kernels.py`` stays accurate.
+#: farther away the mean-vector form of MVC in ``geometry_kernels.py`` stays accurate.
 FACE_TOL = 1e-10
 
 #: A colour whose signed distance to every face plane is below this is inside.

@@ -15,8 +15,8 @@ from .outputs import atomic_outputs, check_apart, check_writable, save_image
 from .palette_file import palette_paths, write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .registry import check_options
-from .render import layer_paths, palette_swatch
 from .stack import WeightStack, check_dtype, stored_weights, write_stack
+from .swatch import layer_paths, palette_swatch
 from .weights import check_weight_method, image_weights
 
 #: Above this many images, loading and weighting show progress bars.

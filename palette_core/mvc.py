@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from . import kernels
+from . import geometry_kernels
 from .errors import InputError
 from .polytope import Polytope, project_to_polytope
 
@@ -62,9 +62,10 @@ def rgb_to_mvc_weights(rgb: np.ndarray, poly: Polytope) -> np.ndarray:
     if poly.dim == 3:
         normals, offsets = poly.planes
         n_chunks = min(len(local), 64 * numba.get_num_threads())
-        kernels.mvc_polyhedron(local, corners, poly.faces, normals, offsets, n_chunks, weights)
+        geometry_kernels.mvc_polyhedron(local, corners, poly.faces, normals, offsets, n_chunks,
+                                        weights)
     elif poly.dim == 2:
-        kernels.mvc_polygon(local, corners, weights)
+        geometry_kernels.mvc_polygon(local, corners, weights)
     elif poly.dim == 1:
         t = (local[:, 0] - corners[0, 0]) / (corners[1, 0] - corners[0, 0])
         weights[:, 0], weights[:, 1] = 1.0 - t, t

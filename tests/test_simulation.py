@@ -20,7 +20,7 @@ from nerf_stage.simulation import (
     with_palette,
 )
 from nerf_stage.simulation.geometry import next_term_table
-from nerf_stage.simulation.kernels import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE, _intersect
+from nerf_stage.simulation.pathtracer import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE, _intersect
 from palette_core.basis import transport_basis, transport_terms, weights_to_rgb
 from palette_core.errors import InputError
 from palette_core.stack import read_stack

@@ -14,7 +14,7 @@ import numpy as np
 
 from palette_core.basis import Basis, n_terms, transport_terms
 
-from .kernels import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE
+from .pathtracer import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE
 from .scene import Scene
 
 PRIM_WIDTH = 18
@@ -22,7 +22,7 @@ BOX_PAD = 1e-6
 
 
 class SceneArrays(NamedTuple):
-    """Geometry, materials and lights as flat arrays; the kernel ``kernels.trace_view`` takes
+    """Geometry, materials and lights as flat arrays; the kernel ``pathtracer.trace_view`` takes
     the record whole (numba reads named tuples of arrays)."""
 
     prim_kind: np.ndarray  # (P,) int64
@@ -58,7 +58,7 @@ def next_term_table(k: int, order: int) -> np.ndarray:
 
 
 def scene_arrays(scene: Scene) -> SceneArrays:
-    """Flatten ``scene`` for ``kernels.trace_view``."""
+    """Flatten ``scene`` for ``pathtracer.trace_view``."""
     prims: list[tuple[int, np.ndarray, int]] = []
     groups = []
     for obj in scene.objects:

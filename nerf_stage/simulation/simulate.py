@@ -33,7 +33,7 @@ from ..cameras import (
     rig_poses,
 )
 from .geometry import next_term_table, scene_arrays
-from .kernels import trace_view
+from .pathtracer import trace_view
 from .scene import LIMITS, MAX_TERM_BYTES, SPLITS, Scene
 
 GREY_TOL = 1e-12
