@@ -76,7 +76,9 @@ class StackHarmonization:
     def write(self, source: str | Path, output: str | Path | None = None,
               render: str | Path | None = None, force: bool = False) -> dict[str, Path]:
         """Write the harmonised stacks and, with ``render``, the recoloured images, hue wheels,
-        swatches and (all templates) ``contact_sheet.png``; all published together.
+        swatches and (all templates) ``contact_sheet.png``. Zarr stacks are published
+        first, each by its own rename (``stack.zarr``); then the NPZ stacks and the pictures
+        together (``outputs.atomic_outputs``).
 
         Returns
         -------

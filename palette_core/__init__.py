@@ -1,10 +1,12 @@
 """palette_core: shared palettes and additive weights for sets of images.
 
-Stitch all pixels of all images into one colour set (``colour_set``), extract one
-palette (``palettes``: convex-hull simplification, ``hull``), compute per-pixel
-weights (``weights``: mean value coordinates, ``mvc``, or RGBXY, ``rgbxy``), store
-them as an NPZ weight stack (``stack``) and recolour by editing the palette
-(``basis``, ``recolor``). docs/architecture.md shows how the modules fit together.
+Stitch all pixels of all images into one colour set (``colour_set``), fit one
+palette (``palettes``: the convex-hull simplification of ``hull``, refined to the
+pixels by ``refine``), compute per-pixel weights (``weights``: mean value
+coordinates, ``mvc``, or RGBXY, ``rgbxy``), store them as a weight stack (``stack``:
+NPZ, or Zarr for collections beyond memory, ``collection``) and recolour by editing
+the palette (``basis``, ``recolor``). docs/architecture.md shows how the modules fit
+together.
 """
 
 from .basis import Basis, basis_terms, n_terms, transport_basis, transport_terms, weights_to_rgb
