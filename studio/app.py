@@ -69,13 +69,37 @@ class ModeView(Protocol):
 
 
 def check_port(host: str, port: int) -> None:
-    """InputError unless ``port`` on ``host`` is free (viser would quietly take another)."""
+    """InputError unless ``port`` on ``host`` is a port number that is free (viser would
+    quietly take another)."""
+    if not 0 <= port <= 65535:
+        raise InputError(f"--port must be in [0, 65535], got {port}")
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
         try:
             probe.bind((host, port))
         except OSError as exc:
             raise InputError(f"cannot listen on {host}:{port}: {exc.strerror} "
                              "(choose another --port)") from None
+
+
+def open_target(path: str):
+    """A ``PhotoTarget`` for a weight stack, a ``SceneTarget`` for a run folder.
+
+    Raises
+    ------
+    InputError
+        If ``path`` is neither.
+    """
+    from nerf_stage.run import CHECKPOINT
+
+    target = Path(path)
+    if target.is_dir() and (target / CHECKPOINT).is_file():
+        return SceneTarget.open(target)
+    if target.suffix in (".npz", ".zarr"):
+        return PhotoTarget.open(target)
+    if not target.exists():
+        raise InputError(f"{path} does not exist")
+    raise InputError(f"{path} is neither a weight stack (.npz, .zarr) nor a run folder "
+                     f"(a folder with {CHECKPOINT})")
 
 
 def _no_share_url(*args, **kwargs) -> None:
