@@ -21,11 +21,11 @@ from .palettes import PALETTE_METHODS, palette_polytope
 from .polytope import Polytope, polytope_from_points, polytope_rmse, project_to_polytope
 from .recolor import recolor_stack
 from .stack import WeightStack, read_stack, write_stack
+from .version import __version__
 from .weights import WEIGHT_METHODS, image_weights
 
-__version__ = "0.1.0"
-
 __all__ = [
+    "__version__",
     "PALETTE_METHODS",
     "WEIGHT_METHODS",
     "Basis",

@@ -44,6 +44,7 @@ from .stack.zarr import (
     remove_store,
 )
 from .swatch import palette_swatch
+from .version import __version__
 from .weights import check_weight_method, colour_weights
 
 #: Megapixels of one task: a whole image, or a run of frames of one video.
@@ -307,8 +308,6 @@ def _open_store(output, collection: Collection, method: str, dtype: str, resume:
                 settings: dict):
     """The Zarr group of the stack: created, or reopened to resume."""
     import zarr
-
-    from . import __version__
 
     palette = collection.palette.vertices.astype(np.float32)
     if resume:

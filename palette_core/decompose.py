@@ -17,6 +17,7 @@ from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .registry import check_options
 from .stack import WeightStack, check_dtype, stored_weights, write_stack
 from .swatch import layer_paths, palette_swatch
+from .version import __version__
 from .weights import check_weight_method, image_weights
 
 #: Above this many images, loading and weighting show progress bars.
@@ -190,8 +191,6 @@ def decompose(
         rmse[image.name] = 255.0 * np.sqrt(sq / max(3 * n, 1))
         squared, count = squared + sq, count + n
     overall = 255.0 * np.sqrt(squared / max(3 * count, 1))
-
-    from . import __version__
 
     meta = {
         "version": __version__,

@@ -23,6 +23,62 @@ def photo_dir(tmp_path, rng):
 
 
 @pytest.fixture(scope="session")
+def cornell(tmp_path_factory):
+    """16x16 Cornell box (transport weights, order 2, 15 terms), simulated once a session."""
+    from nerf_stage.cli import main as nerf
+
+    out = tmp_path_factory.mktemp("nerf") / "cb"
+    assert nerf(["simulate", "cornell-box", str(out), "--resolution", "16", "--spp", "4",
+                 "--views", "4", "1", "2"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def still_life(tmp_path_factory):
+    """16x16 still life with an additive stack decomposed from its training views."""
+    from nerf_stage.cli import main as nerf
+    from palette_core.cli.decompose import main as decompose
+
+    out = tmp_path_factory.mktemp("nerf") / "sl"
+    assert nerf(["simulate", "still-life", str(out), "--resolution", "16", "--spp", "2",
+                 "--views", "4", "1", "2"]) == 0
+    assert decompose([str(out / "train"), "-k", "4", "-o", str(out / "weights.npz")]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def cornell_run(cornell, tmp_path_factory):
+    """A tiny run on ``cornell`` through ``nerf-stage train``, and the flags that made it."""
+    pytest.importorskip("torch")
+    from nerf_stage.cli import main as nerf
+
+    from .nerf_runs import TINY_FLAGS
+
+    rundir = tmp_path_factory.mktemp("runs") / "cb"
+    args = ["train", str(cornell), "--weights", str(cornell / "weights.npz"), "-o", str(rundir),
+            *TINY_FLAGS]
+    assert nerf(args) == 0
+    return rundir, args
+
+
+@pytest.fixture(scope="session")
+def per_sample_run(cornell_run, tmp_path_factory):
+    """``cornell_run`` with the paper's per-sample diffuse colours."""
+    from nerf_stage.cli import main as nerf
+    from nerf_stage.run import load_run
+
+    from .nerf_runs import PER_SAMPLE_FLAGS
+
+    _, args = cornell_run
+    rundir = tmp_path_factory.mktemp("runs") / "per-sample"
+    args = [*args[:args.index("-o") + 1], str(rundir), *args[args.index("-o") + 2:]]
+    assert nerf([*args, *PER_SAMPLE_FLAGS]) == 0
+    config = load_run(rundir).config.grid
+    assert not config.deferred and config.view_frequencies is None
+    return rundir
+
+
+@pytest.fixture(scope="session")
 def scene_run(tmp_path_factory):
     """A tiny weight NeRF of a 16x16 still life."""
     pytest.importorskip("torch")

@@ -1,6 +1,11 @@
 """Assertions shared by the tests."""
 
+import struct
+import zlib
+
 import numpy as np
+
+from palette_core.stack import WeightStack, write_stack
 
 
 def weight_invariants(weights, palette, colours):
@@ -20,3 +25,26 @@ def expect_error(main, argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def stack_file(path, names=("a.png",), weights=None, **arrays):
+    """A valid additive stack of 2x2 images, with arrays replaced by ``arrays``."""
+    weights = weights or [np.full((2, 2, 4), 0.25, np.float32)] * len(names)
+    write_stack(WeightStack(np.eye(4, 3, dtype=np.float32), list(weights), list(names)), path)
+    if arrays:
+        with np.load(path) as npz:
+            data = dict(npz)
+        data.update({key.rstrip("_"): value for key, value in arrays.items()})
+        np.savez(path, **data)
+    return path
+
+
+def png_header_only(path, width, height):
+    """A PNG whose header declares width x height and whose data is a few bytes."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(
+            ">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
+                     + chunk(b"IDAT", zlib.compress(b"\x00" * 16)) + chunk(b"IEND", b""))
+    return path

@@ -9,11 +9,10 @@ from PIL import Image
 
 from nerf_stage.cli import main
 from nerf_stage.data import join_weights, load_dataset
+from palette_core import InputError, WeightStack, read_stack
 from palette_core.basis import weights_to_rgb
-from palette_core.errors import InputError
-from palette_core.stack import WeightStack, read_stack
 
-from .helpers import expect_error
+from .helpers import expect_error, png_header_only
 
 POSE = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]
 
@@ -152,4 +151,25 @@ def test_malformed_datasets(tmp_path, edit, message):
 
 def test_folder_without_transforms(tmp_path):
     with pytest.raises(InputError, match="neither transforms_train.json"):
+        load_dataset(tmp_path)
+
+
+def test_decompression_bomb_as_dataset_frame(tmp_path):
+    (tmp_path / "train").mkdir()
+    png_header_only(tmp_path / "train" / "r_0.png", 100000, 100000)
+    frames = [{"file_path": "train/r_0", "transform_matrix": np.eye(4).tolist()}]
+    (tmp_path / "transforms_train.json").write_text(
+        json.dumps({"camera_angle_x": 0.7, "frames": frames}))
+    with pytest.raises(InputError, match="max-pixels"):
+        load_dataset(tmp_path)
+
+
+def test_nan_camera_matrix(tmp_path):
+    (tmp_path / "train").mkdir()
+    Image.fromarray(np.zeros((2, 2, 3), np.uint8)).save(tmp_path / "train" / "r_0.png")
+    pose = np.eye(4).tolist()
+    pose[0][3] = float("nan")
+    (tmp_path / "transforms_train.json").write_text(json.dumps(
+        {"camera_angle_x": 0.7, "frames": [{"file_path": "train/r_0", "transform_matrix": pose}]}))
+    with pytest.raises(InputError, match="NaN"):
         load_dataset(tmp_path)

@@ -1,12 +1,17 @@
 """Image input: formats, bit depths, alpha, orientation, stitching."""
 
+import warnings
+
 import numpy as np
 import png
 import pytest
 import tifffile
 from PIL import Image
 
-from palette_core import ColourSet, InputError, find_images, load_image
+from palette_core import ColourSet, InputError, find_images, load_image, read_stack
+from palette_core.cli import decompose
+
+from .helpers import expect_error, png_header_only
 
 
 @pytest.mark.parametrize("suffix", [".png", ".tif", ".bmp", ".webp"])
@@ -104,3 +109,44 @@ def test_large_8_bit_sets_use_the_table(rng):
     cs = ColourSet.from_images([LoadedImage("big", pixels, np.ones((1100, 1000), bool))])
     np.testing.assert_array_equal(np.round(cs.colours[cs.inverse] * 255).astype(np.uint8),
                                   pixels.reshape(-1, 3))
+
+
+def test_decompression_bombs_are_refused_from_the_header(tmp_path, capsys):
+    bomb = png_header_only(tmp_path / "bomb.png", 100000, 100000)
+    expect_error(decompose.main, [str(bomb), "-o", str(tmp_path / "w.npz")], "--max-pixels",
+                 capsys)
+    Image.fromarray(np.zeros((100, 100, 3), np.uint8)).save(tmp_path / "flat.png")
+    expect_error(decompose.main, [str(tmp_path / "flat.png"), "--max-pixels", "5000",
+                                  "-o", str(tmp_path / "w.npz")], "100x100", capsys)
+
+
+def test_fully_transparent_images(tmp_path, capsys):
+    Image.fromarray(np.zeros((4, 4, 4), np.uint8)).save(tmp_path / "clear.png")
+    expect_error(decompose.main, [str(tmp_path / "clear.png"), "-o", str(tmp_path / "w.npz")],
+                 "fully transparent", capsys)
+
+
+def test_planar_16_bit_tiff(tmp_path, rng):
+    planes = rng.integers(0, 65536, (3, 5, 64), dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "planar.tif", planes, planarconfig="separate", photometric="rgb")
+    image = load_image(tmp_path / "planar.tif")
+    assert image.pixels.shape == (5, 64, 3)
+    assert np.array_equal(image.pixels, np.moveaxis(planes, 0, -1))
+
+
+def test_float_tiff_with_nan(tmp_path):
+    tifffile.imwrite(tmp_path / "nan.tif", np.full((4, 4), np.nan, np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="NaN"):
+            load_image(tmp_path / "nan.tif")
+
+
+def test_symlinked_input_keeps_its_name(tmp_path, rng):
+    (tmp_path / "store").mkdir()
+    (tmp_path / "in").mkdir()
+    Image.fromarray(rng.integers(0, 256, (4, 4, 3), dtype=np.uint8)).save(
+        tmp_path / "store" / "x1234.png")
+    (tmp_path / "in" / "holiday.png").symlink_to(tmp_path / "store" / "x1234.png")
+    assert decompose.main([str(tmp_path / "in"), "-k", "4", "-o", str(tmp_path / "w.npz")]) == 0
+    assert read_stack(tmp_path / "w.npz").names == ["holiday.png"]

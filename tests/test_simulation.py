@@ -10,6 +10,7 @@ from PIL import Image
 
 from nerf_stage.cameras import focal_from_fov, look_at, rig_poses
 from nerf_stage.cli import main
+from nerf_stage.cli import main as nerf_stage
 from nerf_stage.simulation import (
     load_scene,
     parse_scene,
@@ -21,11 +22,11 @@ from nerf_stage.simulation import (
 )
 from nerf_stage.simulation.geometry import next_term_table
 from nerf_stage.simulation.pathtracer import CYLINDER, DISC, QUAD, SPHERE, TRIANGLE, _intersect
+from palette_core import InputError, read_stack
 from palette_core.basis import transport_basis, transport_terms, weights_to_rgb
-from palette_core.errors import InputError
-from palette_core.stack import read_stack
+from palette_core.cli import recolor
 
-from .helpers import expect_error
+from .helpers import expect_error, stack_file
 
 EXACT = 1e-5
 
@@ -365,3 +366,51 @@ def test_existing_output_needs_force(tmp_path, capsys):
 def test_with_palette_checks_the_shape():
     with pytest.raises(InputError, match=r"palette must have shape \(4, 3\)"):
         with_palette(load_scene("cornell-box"), np.zeros((3, 3)))
+
+
+def test_deeply_nested_files(tmp_path, capsys):
+    stack = stack_file(tmp_path / "s.npz")
+    palette = tmp_path / "p.json"
+    palette.write_text('{"palette": ' + "[" * 100000 + "]" * 100000 + "}")
+    expect_error(recolor.main, [str(stack), "--palette", str(palette), "-o", str(tmp_path / "o")],
+                 "not valid JSON", capsys)
+    for name, text in [("deep.json", "[" * 100000 + "]" * 100000),
+                       ("deep.toml", "a = " + "[" * 100000 + "]" * 100000)]:
+        (tmp_path / name).write_text(text)
+        expect_error(nerf_stage, ["simulate", str(tmp_path / name), str(tmp_path / "o")],
+                     "cannot be parsed", capsys)
+
+
+# --- simulation limits, checked before any work ---------------------------------------------
+
+@pytest.mark.parametrize("args, message", [
+    (["--views", "1000000000000", "0", "0"], "views must be"),
+    (["--order", "1000"], "order must be at most"),
+    (["--seed", str(2**64)], "seed must be at most"),
+    (["--resolution", "100000"], "resolution must be at most"),
+    (["--resolution", "4096", "--views", "100", "0", "0"], "GiB"),
+])
+def test_simulation_limits(tmp_path, capsys, args, message):
+    expect_error(nerf_stage, ["simulate", "cornell-box", str(tmp_path / "o"), *args], message,
+                 capsys)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("path, value, message", [
+    (("camera", "target"), [float("nan"), 0, 0], "finite"),
+    (("camera", "radius"), float("inf"), "camera.radius"),
+    (("camera", "radius"), 0, "camera.radius"),
+    (("lights", 0, "emission"), [float("inf")] * 3, "emission"),
+    (("objects", 0, "corner"), [0, float("nan"), 0], "finite"),
+])
+def test_scene_numbers_must_be_finite(tmp_path, capsys, path, value, message):
+    from nerf_stage.simulation.scene import builtin_scene_path
+
+    scene = json.loads(builtin_scene_path("cornell-box").read_text())
+    target = scene
+    for key in path[:-1]:
+        target = target[key]
+    target[path[-1]] = value
+    (tmp_path / "s.json").write_text(json.dumps(scene))
+    expect_error(nerf_stage, ["simulate", str(tmp_path / "s.json"), str(tmp_path / "o")],
+                 message, capsys)

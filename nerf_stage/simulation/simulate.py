@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from palette_core import __version__
 from palette_core.basis import Basis, n_terms, transport_basis
 from palette_core.errors import InputError
 from palette_core.outputs import publish_folder, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, write_stack
+from palette_core.version import __version__
 
 from ..cameras import (
     SPLIT_PHASES,

@@ -1,0 +1,192 @@
+"""Training weight NeRFs: the frozen density part, supersampling, bakes, losses, the output
+layer fitted before fine-tuning, learning-rate decay, resume, the config's checks."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nerf_stage import losses  # noqa: E402
+from nerf_stage import trainer as trainer_module  # noqa: E402
+from nerf_stage.cameras import Intrinsics  # noqa: E402
+from nerf_stage.config import TrainConfig  # noqa: E402
+from nerf_stage.data import join_weights, load_dataset  # noqa: E402
+from nerf_stage.metrics import psnr  # noqa: E402
+from nerf_stage.run import CHECKPOINT  # noqa: E402
+from palette_core.errors import InputError  # noqa: E402
+from palette_core.stack import read_stack  # noqa: E402
+
+from .nerf_runs import PER_SAMPLE, TINY, tiny_config, trained  # noqa: E402
+
+
+@pytest.mark.parametrize("backbone", ["grid", "mlp"])
+def test_fine_tuning_leaves_the_density_part_bit_identical(cornell, tmp_path, backbone):
+    two_stage = trained(cornell, tiny_config(backbone=backbone), tmp_path / "a")
+    pretrained = trained(cornell, tiny_config(backbone=backbone, strategy="rgb",
+                                              pretrain_iters=2, finetune_iters=0), tmp_path / "b")
+    for after, before in zip(two_stage.field.density_parameters(),
+                             pretrained.field.density_parameters()):
+        assert torch.equal(after, before)
+    assert not torch.equal(two_stage.field.colour_parameters()[0],
+                           pretrained.field.colour_parameters()[0])
+    assert two_stage.field.kind == "transport" and two_stage.field.output.out_features == 15
+
+
+def test_additive_renders_sum_to_the_opacity(still_life, tmp_path):
+    run = trained(still_life, tiny_config(strategy="traditional"), tmp_path / "run")
+    data = load_dataset(still_life)
+    weights, opacity = run.render(data.poses[data.indices("test")])
+    assert weights.shape == (2, 16, 16, 4) and np.all(weights >= 0)
+    assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
+
+
+def test_a_supersampled_pixel_is_the_mean_of_a_finer_cameras_pixels(still_life, tmp_path):
+    """With n = 2 a pixel averages the rays a camera of twice the resolution has through the
+    centres of its 2 x 2 sub-pixels; additive weights still sum to the opacity."""
+    run = trained(still_life, tiny_config(supersampling=2), tmp_path / "run")
+    poses = load_dataset(still_life).poses[:2]
+    weights, opacity = run.render(poses)
+    k = run.intrinsics
+    finer = Intrinsics(2 * k.width, 2 * k.height, 2 * k.fx, 2 * k.fy, 2 * k.cx, 2 * k.cy)
+    one_ray = replace(run, config=replace(run.config, supersampling=1))
+    fine_weights, fine_opacity = one_ray.render(poses, intrinsics=finer)
+    blocks = fine_weights.reshape(2, 16, 2, 16, 2, -1).mean((2, 4))
+    assert weights.shape == (2, 16, 16, 4) and np.allclose(weights, blocks, atol=1e-6)
+    assert np.allclose(opacity, fine_opacity.reshape(2, 16, 2, 16, 2).mean((2, 4)), atol=1e-6)
+    assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
+
+
+@pytest.mark.parametrize("scene", ["cornell", "still_life"])
+def test_baked_renders_approach_the_network_as_the_bake_gets_finer(scene, request, tmp_path):
+    """Same opacity at every factor (the baked grid divides the field's cells), weights
+    non-negative (summing to the opacity for additive stacks), colours closer to the
+    network's the finer the bake."""
+    root = request.getfixturevalue(scene)
+    run = trained(root, tiny_config(pretrain_iters=20, finetune_iters=20, grid=PER_SAMPLE),
+                  tmp_path / "run")
+    poses = load_dataset(root).poses[:2]
+    weights, opacity = run.render(poses)
+    agreement = []
+    for factor in (1, 2, 4):
+        baked_weights, baked_opacity = run.baked(factor).render(poses)
+        assert np.abs(baked_opacity - opacity).max() < 1e-5 and np.all(baked_weights >= 0)
+        if run.basis == "additive":
+            assert np.allclose(baked_weights.sum(-1), baked_opacity, atol=1e-5)
+        agreement.append(psnr(*(np.clip(w @ run.terms, 0, 1) for w in (baked_weights, weights))))
+    assert agreement == sorted(agreement) and agreement[-1] > 22
+
+
+def test_only_per_sample_diffuse_grids_bake(cornell, tmp_path):
+    for name, backbone, grid in (("mlp", "mlp", PER_SAMPLE), ("deferred", "grid", TINY["grid"]),
+                                 ("view", "grid", replace(PER_SAMPLE, view_frequencies=2))):
+        run = trained(cornell, tiny_config(backbone=backbone, grid=grid, pretrain_iters=1,
+                                           finetune_iters=1), tmp_path / name)
+        with pytest.raises(InputError, match="be baked"):
+            run.baked()
+
+
+def test_transport_loss_tone_maps_emitters():
+    loss = losses.weight_loss
+    lamp, twice = torch.tensor([[30.0, 0.2]]), torch.tensor([[60.0, 0.2]])
+    assert loss("transport", twice, lamp) < 2e-4  # a lamp at twice its radiance: both white
+    assert loss("transport", torch.tensor([[1.0, 0.0]]), torch.zeros(1, 2)) == 0.125
+    assert loss("additive", twice, lamp) == 450.0
+
+
+def test_colours_through_the_weights_are_compared_as_recorded():
+    images = torch.tensor([[1.0, 1.0, 1.0], [0.5, 0.5, 0.5]])
+    lamp = torch.tensor([[30.0, 30.0, 30.0], [0.5, 0.5, 0.5]], requires_grad=True)
+    loss = losses.recorded_rgb_loss(lamp, images)
+    loss.backward()
+    assert loss == 0 and not lamp.grad.any()  # a saturated pixel is matched by any radiance
+    assert losses.recorded_rgb_loss(torch.full((1, 3), 0.25), images[1:]) == 0.0625
+
+
+@pytest.mark.parametrize("scene", ["cornell", "still_life"])
+def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_path):
+    root = request.getfixturevalue(scene)
+    config = tiny_config(strategy="rgb", pretrain_iters=4, finetune_iters=0, batch_rays=1024)
+    run = trained(root, config, tmp_path / "run")
+    dataset, stack = load_dataset(root), read_stack(root / "weights.npz")
+    train_ids = dataset.indices("train")
+    weights = join_weights(dataset, stack)
+    if stack.basis == "additive":
+        weights = weights * dataset.alpha[train_ids, ..., None]
+    rays = trainer_module._ray_bank(run, dataset, train_ids, weights, torch.device("cpu"))
+
+    def batch_loss():
+        with torch.no_grad():
+            values, _, _ = run.render_pixels(rays["origins"], rays["directions"])
+            return float(losses.weight_loss(run.field.kind, values, rays["weights"]))
+
+    trainer_module._start_finetune(run)
+    fresh = batch_loss()
+    trainer_module._fit_output(run, rays, torch.Generator().manual_seed(0))
+    assert batch_loss() < 0.75 * fresh
+
+
+def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch):
+    config = tiny_config(pretrain_iters=3, finetune_iters=3)
+    whole = trained(cornell, config, tmp_path / "whole")
+    save = trainer_module.save_checkpoint
+
+    def save_then_stop(run, path, optimisers, generator):
+        save(run, path, optimisers, generator)
+        if run.record.iteration == 4:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(trainer_module, "save_checkpoint", save_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        trained(cornell, config, tmp_path / "resumed")
+    monkeypatch.setattr(trainer_module, "save_checkpoint", save)
+    resumed = trained(cornell, config, tmp_path / "resumed", resume=True)
+    for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()):
+        assert torch.equal(a, b)
+    assert [e["loss"] for e in whole.record.log] == [e["loss"] for e in resumed.record.log]
+
+
+def test_a_run_with_other_optimisers_does_not_resume(cornell, tmp_path):
+    config = tiny_config(pretrain_iters=1, finetune_iters=1)
+    trained(cornell, config, tmp_path / "run")
+    path = tmp_path / "run" / CHECKPOINT
+    state = torch.load(path, weights_only=True)
+    state["optimisers"].append(state["optimisers"][0])  # grids had a SparseAdam of their own
+    torch.save(state, path)
+    with pytest.raises(InputError, match="other optimisers"):
+        trained(cornell, config, tmp_path / "run", resume=True)
+
+
+@pytest.mark.parametrize("loss", ["rgb_weight", "sparsity_weight"])
+def test_loss_weights_are_non_negative(loss):
+    assert getattr(TrainConfig(), loss) > 0
+    with pytest.raises(InputError, match=loss):
+        TrainConfig(**{loss: -1.0})
+
+
+def test_learning_rates_decay_to_lr_decay_over_each_stage():
+    config = tiny_config(pretrain_iters=4, finetune_iters=2, lr_decay=0.25)
+    rates = []
+    for it in range(6):
+        if it in (0, 4):  # each stage starts with new optimisers
+            optimiser = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=0.1)
+        trainer_module._decay_learning_rates([optimiser], config, it)
+        rates.append(optimiser.param_groups[0]["lr"])
+    assert rates == pytest.approx([0.1, 0.1 * 0.25**0.25, 0.05, 0.1 * 0.25**0.75, 0.1, 0.05])
+    with pytest.raises(InputError, match="lr_decay"):
+        TrainConfig(lr_decay=0)
+
+
+def test_deferred_is_a_boolean():
+    assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
+    with pytest.raises(InputError, match="deferred must be true or false"):
+        TrainConfig.from_dict({"grid": {"deferred": "yes"}})
+
+
+def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
+    optical = torch.tensor([0.0, 0.005, 0.01, 3.0, 30.0], requires_grad=True)
+    losses.sparsity_loss(optical).backward()
+    fog, surface = optical.grad[1:3], optical.grad[3:]
+    assert optical.grad[0] == 0 and fog.min() > 20 * surface.max() > 0
+    assert losses.sparsity_loss(torch.zeros(0)) == 0
