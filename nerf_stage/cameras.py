@@ -52,6 +52,12 @@ class Intrinsics:
     cx: float
     cy: float
 
+    def downscaled(self, factor: int) -> Intrinsics:
+        """The camera of images ``factor`` times smaller (whole pixels, as ``data`` crops
+        them): focal lengths and principal point scale with the pixels."""
+        return Intrinsics(self.width // factor, self.height // factor, self.fx / factor,
+                          self.fy / factor, self.cx / factor, self.cy / factor)
+
     @classmethod
     def from_dict(cls, data, source: str) -> Intrinsics:
         """The camera of a checkpoint's ``intrinsics``: whole positive sizes of at most

@@ -80,6 +80,10 @@ def _add_train(commands, defaults: TrainConfig) -> None:
     train.add_argument("--frames-outside", action="store_true",
                        help="read frames whose file_path lies outside DATADIR (absolute, or "
                             "climbing out with ..); refused by default")
+    train.add_argument("--downscale", type=int, default=1, metavar="N",
+                       help="train on images N times smaller than the files (the mean of each "
+                            "N x N block; the weight stack may be of either size); render and "
+                            "eval read them so too (default 1)")
     add_config_arguments(train, defaults)
     again = train.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue RUNDIR's checkpoint")
@@ -170,7 +174,7 @@ def _train(args) -> int:
     config = config_from_args(TrainConfig, args)
     data = Path(args.data).resolve()
     rundir = Path(args.output or data.with_name(f"{data.name}-{config.backbone}"))
-    dataset = load_dataset(data, config.background, args.frames_outside)
+    dataset = load_dataset(data, config.background, args.frames_outside, args.downscale)
     weights = Path(args.weights) if args.weights else data / DEFAULT_STACK
     if args.weights is None and not weights.is_file():
         raise InputError(f"{weights} does not exist: make it with palette-decompose images/ "
@@ -200,7 +204,6 @@ def _render(args) -> int:
 
 
 def _eval(args) -> int:
-    from .data import load_dataset
     from .evaluation import evaluate
     from .fields import RGB
     from .run import load_run
@@ -209,8 +212,7 @@ def _eval(args) -> int:
     if args.baked is not None:
         run = run.baked(args.baked)
     edit = None if args.palette is None else read_palette_json(args.palette, k=len(run.palette))
-    dataset = load_dataset(run.record.dataset, run.config.background,
-                           run.record.frames_outside)
+    dataset = run.dataset()
     scores = evaluate(run, dataset, edit)
     rec = scores["reconstruction"]
     what = "RGB NeRF" if run.field.kind == RGB else "RGB through the weights"

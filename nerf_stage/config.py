@@ -35,6 +35,14 @@ class Strategy(StrEnum):
     RGB = "rgb"
 
 
+class Space(StrEnum):
+    """Where the scene ends (``scene_box.scene_box``)."""
+
+    AUTO = "auto"
+    BOX = "box"
+    UNBOUNDED = "unbounded"
+
+
 @dataclass
 class TrainConfig:
     """How to train one weight NeRF (defaults suit the ``grid`` backbone on a CPU)."""
@@ -76,6 +84,10 @@ class TrainConfig:
     loss alone)."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour behind the scene, RGB in [0, 1]."""
+    space: Space = Space.AUTO
+    """``box``: the scene ends in a box around what the cameras see; ``unbounded``: what lies
+    beyond it is contracted into a shell (mip-NeRF 360); ``auto``: ``unbounded`` when every
+    training pixel is opaque, else ``box`` (``scene_box.scene_box``)."""
     seed: int = 0
     """Seed of the weight initialisation, ray batches and sample jitter."""
     checkpoint_every: int = 500
@@ -88,6 +100,7 @@ class TrainConfig:
     def __post_init__(self):
         self.backbone = member(Backbone, self.backbone, "backbone")
         self.strategy = member(Strategy, self.strategy, "strategy")
+        self.space = member(Space, self.space, "space")
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight")
         positive(self, "lr_decay")
         integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")

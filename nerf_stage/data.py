@@ -10,7 +10,9 @@ Two layouts are read:
   ``w``, ``h`` and ``frames[]``; every eighth frame is held out for testing
   (the LLFF convention), there is no validation split.
 
-Images are read as RGBA floats and composited on a chosen background.
+Images are read as RGBA floats and composited on a chosen background; ``downscale`` N
+averages each N x N block of pixels (premultiplied by alpha), for captures larger than the
+training resolution (nerfstudio's ``--downscale-factor``).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from .cameras import Intrinsics, focal_length
 
 SPLITS = ("train", "val", "test")
 NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
+MAX_DOWNSCALE = 64
 
 
 @dataclass
@@ -55,6 +58,8 @@ class Dataset:
         ``blender`` or ``nerfstudio``: the files it was read from.
     frames_outside : bool
         Frames were allowed outside ``root`` (``load_dataset``).
+    downscale : int
+        The images are this many times smaller than the files (``load_dataset``).
     """
 
     root: Path
@@ -67,6 +72,7 @@ class Dataset:
     background: np.ndarray
     layout: str = "blender"
     frames_outside: bool = False
+    downscale: int = 1
 
     def indices(self, split: str) -> np.ndarray:
         """Frame indices of one split."""
@@ -74,8 +80,8 @@ class Dataset:
 
 
 def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
-                 frames_outside: bool = False) -> Dataset:
-    """Read a Blender or nerfstudio dataset folder.
+                 frames_outside: bool = False, downscale: int = 1) -> Dataset:
+    """Read a Blender or nerfstudio dataset folder, its images ``downscale`` times smaller.
 
     A frame's ``file_path`` must lie inside ``root`` (neither absolute nor climbing out
     with ``..``) unless ``frames_outside``: a transforms file from elsewhere cannot make
@@ -90,6 +96,7 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     """
     root = Path(root)
     background = np.asarray(background, np.float64).reshape(3)
+    check_downscale(downscale)
     if (root / "transforms_train.json").is_file():
         layout = "blender"
         names, splits, poses, angle = _read_blender(root, frames_outside)
@@ -110,11 +117,44 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     if wrong:
         raise InputError(f"{root}: images {_listing(wrong)} are not "
                          f"{intrinsics.width}x{intrinsics.height} as the cameras say")
-    rgba = np.stack(rgba)
+    if min(intrinsics.width, intrinsics.height) < downscale:
+        raise InputError(f"{root}: images of {intrinsics.width}x{intrinsics.height} cannot be "
+                         f"downscaled {downscale} times")
+    rgba = np.stack([block_mean(im, downscale, rgba=True) for im in rgba])
+    intrinsics = intrinsics.downscaled(downscale)
     alpha = rgba[..., 3]
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
-                   alpha, background, layout, frames_outside)
+                   alpha, background, layout, frames_outside, downscale)
+
+
+def check_downscale(factor) -> int:
+    """``factor``, checked: a whole number from 1 to ``MAX_DOWNSCALE``.
+
+    Raises
+    ------
+    InputError
+    """
+    if isinstance(factor, bool) or not isinstance(factor, int) or not 1 <= factor <= MAX_DOWNSCALE:
+        raise InputError(f"downscale must be a whole number from 1 to {MAX_DOWNSCALE}, got "
+                         f"{factor!r}")
+    return factor
+
+
+def block_mean(image: np.ndarray, factor: int, rgba: bool = False) -> np.ndarray:
+    """(H, W, C) -> (H // factor, W // factor, C): the mean of each factor x factor block
+    (the rows and columns past the last whole block are dropped). The colour of an ``rgba``
+    image is averaged premultiplied by alpha, so that compositing commutes with
+    downscaling; weights, linear in the colour, average as they are."""
+    if factor == 1:
+        return image
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    blocks = image[:h * factor, :w * factor].reshape(h, factor, w, factor, -1)
+    if not rgba:
+        return blocks.mean((1, 3)).astype(image.dtype)
+    alpha = blocks[..., 3:].mean((1, 3))
+    colour = (blocks[..., :3] * blocks[..., 3:]).mean((1, 3)) / np.maximum(alpha, 1e-12)
+    return np.concatenate([colour, alpha], -1).astype(image.dtype)
 
 
 def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> np.ndarray:
@@ -122,7 +162,8 @@ def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> 
 
     A stack name matches a frame when it equals the frame's path relative to the
     dataset root or is a trailing part of it (``r_000.png`` for a stack
-    decomposed from ``train/`` alone).
+    decomposed from ``train/`` alone). Weights of the image files' size are downscaled like
+    the images (``block_mean``).
 
     Raises
     ------
@@ -149,8 +190,9 @@ def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> 
     missing = [f for f in frames if f not in by_name]
     if missing:
         raise InputError(f"{split} frames without weights in the stack: {_listing(missing)}")
-    weights = [stack.weights[by_name[f]] for f in frames]
     size = (dataset.intrinsics.height, dataset.intrinsics.width)
+    weights = [np.asarray(stack.weights[by_name[f]], np.float32) for f in frames]
+    weights = [w if w.shape[:2] == size else block_mean(w, dataset.downscale) for w in weights]
     wrong = [f for f, w in zip(frames, weights) if w.shape[:2] != size]
     if wrong:
         raise InputError(f"weights of {_listing(wrong)} are not {size[1]}x{size[0]} "

@@ -183,7 +183,6 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     from harmonize import TEMPLATES, harmonize_palette, palette_shares
     from harmonize.batch import BEST
 
-    from .data import load_dataset
 
     run = load_run(rundir)
     unknown = [t for t in templates if t != BEST and t not in TEMPLATES]
@@ -215,8 +214,7 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
         raise OutputExists(f"output {existing[0]} already exists (use --force to overwrite)")
     reused = render is not None and render.source == source
     if not reused:
-        dataset = load_dataset(run.record.dataset, run.config.background,
-                               run.record.frames_outside)
+        dataset = run.dataset()
         names, poses = render_poses(run, dataset, split, orbit)
         renderer = run if baked is None else run.baked(baked)
         render = render_weights(renderer, names, poses, source, progress)

@@ -17,6 +17,7 @@ from scipy.ndimage import distance_transform_cdt
 from torch import nn
 
 from .cameras import Intrinsics
+from .contraction import ray_points
 from .scene_box import SceneBox, visual_hull
 
 MAX_SKIPS = 16  # sphere-tracing steps across empty space before a ray is marched
@@ -33,10 +34,12 @@ class OccupancyGrid(nn.Module):
     cell while the density is still low everywhere. The grids are buffers:
     ``hull``, ``occupied`` and ``density`` are saved in ``state_dict``; ``extent``,
     ``resolution`` and the ``cell_*`` constants follow from the config and are not.
+    A ``contracted`` grid covers an unbounded scene's contracted space (``contraction``).
     """
 
-    def __init__(self, extent: torch.Tensor, cells: int):
+    def __init__(self, extent: torch.Tensor, cells: int, contracted: bool = False):
         super().__init__()
+        self.contracted = contracted
         per_unit = (cells / float(torch.prod(2 * extent))) ** (1 / 3)
         resolution = torch.clamp(torch.round(2 * extent * per_unit), 1).long()
         shape = tuple(resolution.tolist())
@@ -53,6 +56,11 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("cell_last", (resolution + 1).float(), persistent=False)
         self.register_buffer("cell_strides", strides.float(), persistent=False)
 
+    @classmethod
+    def over(cls, box: SceneBox, cells: int) -> OccupancyGrid:
+        """A grid of about ``cells`` cells over the space of ``box`` (its ``field_extent``)."""
+        return cls(torch.as_tensor(box.field_extent, dtype=torch.float32), cells, box.unbounded)
+
     def carve(self, box: SceneBox, poses: np.ndarray, intrinsics: Intrinsics,
               alpha: np.ndarray) -> None:
         """Start from the visual hull of views (``visual_hull``) at this grid's resolution."""
@@ -67,14 +75,15 @@ class OccupancyGrid(nn.Module):
 
     def bounds(self) -> np.ndarray:
         """(2, 3) lowest and highest corner of the occupied cells, normalised units (the
-        whole box when none is occupied)."""
+        whole box when none is occupied; within the box when ``contracted``)."""
         extent, cells = self.extent.cpu(), torch.nonzero(self.occupied).cpu()
         low, high = -extent, extent
         if len(cells):
             size = 2 * extent / self.resolution.cpu()
             low = cells.min(0).values * size - extent
             high = (cells.max(0).values + 1) * size - extent
-        return torch.stack([low, high]).double().numpy()
+        bounds = torch.stack([low, high]).double().numpy()
+        return np.clip(bounds, -1, 1) if self.contracted else bounds
 
     def dilated(self, margin: int) -> torch.Tensor:
         """(X, Y, Z) bool: the cells within ``margin`` cells of an occupied one."""
@@ -104,20 +113,38 @@ class OccupancyGrid(nn.Module):
                 device=occupied.device)
             cell = float((2 * self.extent / self.resolution).min())
             free = (distance - 1).clamp(min=0) * cell
+            if self.contracted:  # no skipping in the shell, where steps are not distances
+                free = free * self._inner_cells()
             self._cached = occupied, occupied._version, (padded.flatten(), free.flatten(), distance)
         return self._cached[2]
 
+    def _inner_cells(self) -> torch.Tensor:
+        """(X + 2, Y + 2, Z + 2) padded grid: 1 for the cells of a contracted grid inside the
+        box [-1, 1]^3, else 0."""
+        inside = []
+        for n, e in zip(self.resolution.tolist(), self.extent.tolist()):
+            centres = (torch.arange(n + 2, device=self.extent.device) - 0.5) * 2 * e / n - e
+            inside.append(centres.abs() + e / n <= 1 + 1e-6)
+        return (inside[0][:, None, None] & inside[1][None, :, None]
+                & inside[2][None, None, :]).float()
+
     def skip_empty(self, origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor,
-                   far: torch.Tensor, step: float) -> torch.Tensor:
+                   far: torch.Tensor, step: float, bend: torch.Tensor | None = None
+                   ) -> torch.Tensor:
         """(R,) entry distances ``near`` moved on by whole ``step``s across empty space, to
         within a cell of the first occupied cell on each ray (``far`` for rays that meet
         none): at a point d cells from the nearest occupied cell, a ray can move d - 1 cells
-        before it can enter one (``free_distance``; sphere tracing on the occupancy grid)."""
+        before it can enter one (``free_distance``; sphere tracing on the occupancy grid).
+        In a contracted grid, ``near`` and ``far`` are in the rays' marching parameter and
+        ``bend`` (R,) is where it stops being the distance (``contraction``): rays skip only
+        inside the box."""
         free = self._tables()[1]
         t = near
         for _ in range(MAX_SKIPS):
-            advance = free[self._cell(torch.addcmul(origins, t[:, None], directions))]
-            t = t + advance
+            points = (torch.addcmul(origins, t[:, None], directions) if bend is None
+                      else ray_points(origins, directions, t, bend))
+            advance = free[self._cell(points)]
+            t = t + advance if bend is None else torch.minimum(t + advance, t.maximum(bend))
             if not bool((advance > 0).any()):
                 break
         whole = torch.floor((torch.minimum(t, far) - near) / step) * step

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
+from . import contraction
 from .fields.base import RaySampling
 from .occupancy import OccupancyGrid
 
@@ -36,6 +37,15 @@ def box_intersection(origins: torch.Tensor, directions: torch.Tensor, extent: to
     near = torch.clamp(torch.minimum(t0, t1).amax(-1), min=0)
     far = torch.maximum(t0, t1).amin(-1)
     return near, torch.maximum(far, near)
+
+
+def ray_interval(occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.Tensor):
+    """(R,) where each ray's samples start and end in its marching parameter, and its bend
+    (``contraction``; None in a bounded box, where the parameter is the distance)."""
+    if not occupancy.contracted:
+        return (*box_intersection(origins, directions, occupancy.extent), None)
+    _, exits = box_intersection(origins, directions, torch.ones_like(occupancy.extent))
+    return contraction.ray_interval(exits)
 
 
 def composite(sigma: torch.Tensor, deltas: torch.Tensor,
@@ -119,7 +129,9 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     """Sample rays and run the density part where the occupancy grid is occupied.
 
     Samples are spaced ``sampling.step`` apart from where a ray enters the box
-    (grids), or ``sampling.count`` evenly across the box (MLPs); ``generator``
+    (grids), or ``sampling.count`` evenly across the box (MLPs), in the ray's marching
+    parameter (``ray_interval``: the distance, or, in an unbounded scene, a parameter
+    whose steps are about as long in the contracted space); ``generator``
     jitters them (training). Stepped rays start marching in whole steps past the empty
     space in front of them (``OccupancyGrid.skip_empty``), so their samples stay where
     they were; samples in empty cells skip the field. Without gradients (rendering),
@@ -134,12 +146,12 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     origins, directions : (R, 3)
         Normalised coordinates; unit directions.
     """
-    near, far = box_intersection(origins, directions, occupancy.extent)
+    near, far, bend = ray_interval(occupancy, origins, directions)
     if sampling.step is None:
         n_samples = sampling.count
         deltas = (far - near) / n_samples  # (R,)
     else:
-        near = occupancy.skip_empty(origins, directions, near, far, sampling.step)
+        near = occupancy.skip_empty(origins, directions, near, far, sampling.step, bend)
         n_samples = max(1, int(torch.ceil((far - near).max() / sampling.step)))
         deltas = torch.full_like(near, sampling.step)
     jitter = (torch.full_like(near[:, None], 0.5) if generator is None else
@@ -153,7 +165,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     while True:
         enter, step, leave = near[alive, None], deltas[alive, None], far[alive, None]
         t = enter + (first[alive, None] + offsets + jitter[alive]) * step  # (A, S)
-        points = origins[alive, None] + t[..., None] * directions[alive, None]  # (A, S, 3)
+        points = contraction.ray_points(origins[alive, None], directions[alive, None], t,
+                                        None if bend is None else bend[alive, None])  # (A, S, 3)
         valid = (t < leave) & occupancy.lookup(points)
         row, sample = torch.nonzero(valid, as_tuple=True)
         sigma_packed, h = field.density(points[row, sample])
@@ -168,7 +181,7 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         if sampling.step is not None and len(alive) and segment < n_samples:
             at = near[alive] + first[alive] * sampling.step  # across empty space again
             moved = occupancy.skip_empty(origins[alive], directions[alive], at, far[alive],
-                                         sampling.step)
+                                         sampling.step, None if bend is None else bend[alive])
             first[alive] += torch.round((moved - at) / sampling.step)
             alive = alive[moved < far[alive]]
         if len(alive) == 0:

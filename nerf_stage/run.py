@@ -21,6 +21,7 @@ from palette_core.outputs import atomic_outputs
 
 from .cameras import Intrinsics
 from .config import BAKE_FACTOR, TrainConfig
+from .data import Dataset, check_downscale, load_dataset
 from .fields import RGB, Field, RaySampling, make_field
 from .occupancy import OccupancyGrid
 from .rendering import render_rays
@@ -58,6 +59,8 @@ class RunRecord:
     frames_outside : bool
         The dataset's frames may lie outside its folder (``train --frames-outside``); its
         renders and evaluations read them too.
+    downscale : int
+        The dataset's images were read this many times smaller (``train --downscale``).
     """
 
     dataset: str
@@ -67,6 +70,7 @@ class RunRecord:
     iteration: int = 0
     log: list[dict] = field(default_factory=list)
     frames_outside: bool = False
+    downscale: int = 1
 
 
 @dataclass
@@ -106,6 +110,12 @@ class Run:
     def sampling(self) -> RaySampling:
         """How training samples rays."""
         return self.field.sampling()
+
+    def dataset(self) -> Dataset:
+        """The run's dataset, read as training read it."""
+        record = self.record
+        return load_dataset(record.dataset, self.config.background, record.frames_outside,
+                            record.downscale)
 
     @property
     def render_sampling(self) -> RaySampling:
@@ -196,7 +206,7 @@ def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator
         "order": run.order,
         "meta": {"dataset": record.dataset, "weights": record.weights,
                  "channels": record.channels, "stack_meta": record.stack_meta,
-                 "frames_outside": record.frames_outside},
+                 "frames_outside": record.frames_outside, "downscale": record.downscale},
         "log": record.log,
     }
     with atomic_outputs(force=True) as stage:  # the run's own checkpoint
@@ -228,7 +238,8 @@ def run_record(state: dict) -> RunRecord:
     meta = state["meta"]
     return RunRecord(meta.get("dataset", ""), meta.get("weights", ""), meta.get("channels", 0),
                      meta.get("stack_meta", {}), state["iteration"], state["log"],
-                     meta.get("frames_outside", False) is True)
+                     meta.get("frames_outside", False) is True,
+                     check_downscale(meta.get("downscale", 1)))
 
 
 def restore(run: Run, state: dict) -> None:
@@ -270,13 +281,13 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
             raise InputError(f"{path}: the field outputs {output['channels']} channels, the "
                              f"basis has {channels}")
         box = SceneBox(np.array(state["box"]["centre"], np.float64),
-                       np.array(state["box"]["half"], np.float64))
+                       np.array(state["box"]["half"], np.float64),
+                       state["box"].get("unbounded", False) is True)
         if (box.centre.shape != (3,) or box.half.shape != (3,) or not np.isfinite(box.centre).all()
                 or not (np.isfinite(box.half) & (box.half > 0)).all()):
             raise InputError(f"{path}: the scene box must be finite with positive extent")
-        extent = torch.as_tensor(box.extent, dtype=torch.float32)
-        field = make_field(config, extent, output["kind"], output["channels"])
-        occupancy = OccupancyGrid(extent, config.occupancy_voxels)
+        field = make_field(config, box, output["kind"], output["channels"])
+        occupancy = OccupancyGrid.over(box, config.occupancy_voxels)
         run = Run(config, field, occupancy, box, intrinsics, palette, basis,
                   int(state["order"]), run_record(state))
         restore(run, state)

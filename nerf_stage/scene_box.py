@@ -1,5 +1,6 @@
 """The scene box: the axis-aligned box around what the cameras see, in which every field
-lives, and rays normalised into it.
+lives, and rays normalised into it. In an unbounded scene the box is a cube and what lies
+beyond it is contracted into a shell around it (``contraction``).
 
 References
 ----------
@@ -15,9 +16,11 @@ import numpy as np
 import torch
 from scipy.ndimage import maximum_filter
 
+from . import contraction
 from .cameras import Intrinsics, camera_rays
 
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
+OPAQUE_ALPHA = 1 - 0.5 / 255  # images whose pixels are all this opaque show no background
 
 
 @dataclass
@@ -29,10 +32,13 @@ class SceneBox:
     centre : (3,) float
     half : (3,) float
         World half sizes.
+    unbounded : bool
+        The scene goes on beyond the box (a cube then), contracted into a shell around it.
     """
 
     centre: np.ndarray
     half: np.ndarray
+    unbounded: bool = False
 
     @property
     def scale(self) -> float:
@@ -43,17 +49,27 @@ class SceneBox:
         """(3,) half sizes of the normalised box (the largest is 1)."""
         return self.half / self.scale
 
+    @property
+    def field_extent(self) -> np.ndarray:
+        """(3,) half sizes of the space fields and the occupancy grid cover: the normalised
+        box, or the contracted space around it."""
+        return np.full(3, contraction.EXTENT) if self.unbounded else self.extent
+
     def to_dict(self) -> dict:
-        return {"centre": self.centre.tolist(), "half": self.half.tolist()}
+        return {"centre": self.centre.tolist(), "half": self.half.tolist(),
+                "unbounded": self.unbounded}
 
 
 def scene_box(poses: np.ndarray, intrinsics: Intrinsics, alpha: np.ndarray,
-              resolution: int = 64) -> SceneBox:
+              space: str = "auto", resolution: int = 64) -> SceneBox:
     """A box around what the cameras see.
 
     Starts from the cube around the point nearest to all optical axes, with half
-    size 0.75 x the nearest camera's distance; when the images have transparent
-    pixels, shrinks it to the visual hull carved from them.
+    size 0.75 x the nearest camera's distance. ``space`` ``unbounded`` keeps that cube and
+    contracts the rest of space around it; ``box`` ends the scene there and, when the
+    images have transparent pixels, shrinks the box to the visual hull carved from them;
+    ``auto`` is ``unbounded`` when every pixel is opaque (no view shows where the scene
+    ends), else ``box``.
     """
     axes = -poses[:, :3, 2]
     eyes = poses[:, :3, 3]
@@ -61,8 +77,9 @@ def scene_box(poses: np.ndarray, intrinsics: Intrinsics, alpha: np.ndarray,
     centre = np.linalg.lstsq(projector.sum(0), np.einsum("nij,nj->i", projector, eyes),
                              rcond=None)[0]
     half = 0.75 * np.linalg.norm(eyes - centre, axis=1).min()
-    box = SceneBox(centre, np.full(3, half))
-    if alpha.min() >= CARVE_ALPHA:
+    unbounded = space == "unbounded" or (space == "auto" and bool(alpha.min() >= OPAQUE_ALPHA))
+    box = SceneBox(centre, np.full(3, half), unbounded)
+    if unbounded or alpha.min() >= CARVE_ALPHA:
         return box
     cells = np.argwhere(visual_hull(box, np.full(3, resolution), poses, intrinsics, alpha))
     if len(cells) == 0:

@@ -81,7 +81,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     train_ids = dataset.indices("train")
     if stack.basis == Basis.ADDITIVE:
         weights = weights * dataset.alpha[train_ids, ..., None]
-    box = scene_box(dataset.poses[train_ids], dataset.intrinsics, dataset.alpha[train_ids])
+    box = scene_box(dataset.poses[train_ids], dataset.intrinsics, dataset.alpha[train_ids],
+                    config.space)
     run = _new_run(config, box, dataset, stack, train_ids, device)
     run.record.weights = weights_path
     rays = _ray_bank(run, dataset, train_ids, weights, device)
@@ -166,13 +167,15 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
     channels = n_terms(len(stack.palette), stack.basis, stack.order)
     kind = RGB if config.strategy != Strategy.TRADITIONAL else stack.basis
     torch.manual_seed(config.seed)
-    extent = torch.as_tensor(box.extent, dtype=torch.float32)
-    field = make_field(config, extent, kind, 3 if kind == RGB else channels).to(device)
-    occupancy = OccupancyGrid(extent, config.occupancy_voxels)
-    occupancy.carve(box, dataset.poses[train_ids], dataset.intrinsics, dataset.alpha[train_ids])
+    field = make_field(config, box, kind, 3 if kind == RGB else channels)
+    occupancy = OccupancyGrid.over(box, config.occupancy_voxels)
+    if not box.unbounded:
+        occupancy.carve(box, dataset.poses[train_ids], dataset.intrinsics,
+                        dataset.alpha[train_ids])
     record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,
-                       stack_meta=stack.meta, frames_outside=dataset.frames_outside)
-    return Run(config, field, occupancy.to(device), box, dataset.intrinsics,
+                       stack_meta=stack.meta, frames_outside=dataset.frames_outside,
+                       downscale=dataset.downscale)
+    return Run(config, field.to(device), occupancy.to(device), box, dataset.intrinsics,
                np.asarray(stack.palette, np.float64), stack.basis, stack.order, record)
 
 

@@ -173,3 +173,24 @@ def test_nan_camera_matrix(tmp_path):
         {"camera_angle_x": 0.7, "frames": [{"file_path": "train/r_0", "transform_matrix": pose}]}))
     with pytest.raises(InputError, match="NaN"):
         load_dataset(tmp_path)
+
+
+def test_downscale_averages_blocks_and_scales_the_camera(still_life):
+    full = load_dataset(still_life)
+    half = load_dataset(still_life, downscale=2)
+    assert half.images.shape[1:3] == (8, 8) and half.downscale == 2
+    assert half.intrinsics.fx == full.intrinsics.fx / 2
+    assert half.intrinsics.cx == full.intrinsics.cx / 2
+    # composited colours average like the files' pixels, premultiplied by alpha
+    blocks = full.images.reshape(len(full.images), 8, 2, 8, 2, 3).mean((2, 4))
+    assert np.allclose(half.images, blocks, atol=1e-6)
+    assert np.allclose(half.alpha, full.alpha.reshape(-1, 8, 2, 8, 2).mean((2, 4)), atol=1e-6)
+    stack = read_stack(still_life / "weights.npz")  # of the files' size
+    weights, full_weights = join_weights(half, stack), join_weights(full, stack)
+    assert np.allclose(weights, full_weights.reshape(-1, 8, 2, 8, 2, 4).mean((2, 4)), atol=1e-6)
+
+
+@pytest.mark.parametrize("factor", [0, 65, 2.5, True])
+def test_bad_downscale_is_refused(still_life, factor):
+    with pytest.raises(InputError, match="downscale"):
+        load_dataset(still_life, downscale=factor)

@@ -203,3 +203,16 @@ def test_crafted_run_folders_are_refused_before_allocating(scene_run, tmp_path, 
     expect_error(nerf_stage, ["render", str(run), "--orbit", "2", "-o", str(tmp_path / "out")],
                  message, capsys)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_downscaled_run_renders_and_scores_at_its_size(still_life, tmp_path, capsys):
+    from .nerf_runs import TINY_FLAGS
+
+    rundir = tmp_path / "run"
+    assert main(["train", str(still_life), "-o", str(rundir), "--downscale", "2",
+                 *TINY_FLAGS]) == 0
+    run = load_run(rundir)
+    assert run.record.downscale == 2 and run.intrinsics.width == 8
+    assert main(["eval", str(rundir)]) == 0
+    assert main(["render", str(rundir), "-o", str(tmp_path / "r")]) == 0
+    assert read_render(tmp_path / "r" / "render.npz").weights.shape[1:3] == (8, 8)

@@ -15,11 +15,13 @@ from .grid import GridField
 from .mlp import MLPField
 
 
-def make_field(config, extent: torch.Tensor, kind: str, channels: int) -> Field:
-    """The backbone ``config.backbone`` of a ``TrainConfig``, built from its settings section,
-    with an output of ``channels`` and activation ``kind``."""
+def make_field(config, box, kind: str, channels: int) -> Field:
+    """The backbone ``config.backbone`` of a ``TrainConfig``, built from its settings section
+    over the space of the ``scene_box.SceneBox`` ``box``, with an output of ``channels`` and
+    activation ``kind``."""
     field_class = BACKBONES[config.backbone].field_class()
-    return field_class(extent, config.backbone_config, config.head_width, kind, channels)
+    return field_class(torch.as_tensor(box.field_extent, dtype=torch.float32),
+                       config.backbone_config, config.head_width, kind, channels)
 
 
 __all__ = ["ACTIVATIONS", "RGB", "Field", "GridField", "MLPField", "RaySampling",

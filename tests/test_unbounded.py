@@ -1,0 +1,83 @@
+"""Unbounded scenes: the contraction of space beyond the box, marching in it, the choice of
+space from the images, and a run that trains, saves and renders in it."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nerf_stage.cameras import rig_poses  # noqa: E402
+from nerf_stage.contraction import FAR, contract, ray_interval, ray_points  # noqa: E402
+from nerf_stage.data import load_dataset  # noqa: E402
+from nerf_stage.fields.base import RaySampling  # noqa: E402
+from nerf_stage.occupancy import OccupancyGrid  # noqa: E402
+from nerf_stage.rendering import march_rays  # noqa: E402
+from nerf_stage.run import load_run  # noqa: E402
+from nerf_stage.scene_box import scene_box  # noqa: E402
+
+from .nerf_runs import tiny_config, trained  # noqa: E402
+
+
+def test_contraction_keeps_the_box_and_maps_infinity_into_the_shell(rng):
+    inside = torch.as_tensor(rng.uniform(-1, 1, (100, 3)))
+    assert torch.equal(contract(inside), inside)
+    far = torch.nn.functional.normalize(torch.as_tensor(rng.normal(size=(100, 3))), dim=-1)
+    for distance in (2.0, 10.0, 1e6):
+        norm = contract(far * distance * 3).abs().amax(-1)
+        assert torch.all((norm > 1) & (norm < 2))
+    assert torch.allclose(contract(far * 1e12).abs().amax(-1), torch.full((100,), 2.0,
+                                                                          dtype=torch.float64))
+
+
+def test_marching_is_linear_in_the_box_then_in_disparity():
+    origins, directions = torch.zeros(1, 3), torch.tensor([[1.0, 0.0, 0.0]])
+    near, far, bend = ray_interval(torch.tensor([1.0]))
+    assert near.item() == 0 and bend.item() == 1 and far.item() == pytest.approx(2 - 1 / FAR)
+    u = torch.tensor([[0.5, 1.0, 1.5, 1.75]])
+    points = ray_points(origins, directions, u, bend[:, None])
+    # t = 0.5, 1, 2, 4: contracted to 0.5, 1, 1.5, 1.75 (a step in u is a step in the shell)
+    assert torch.allclose(points[0, :, 0], torch.tensor([0.5, 1.0, 1.5, 1.75]))
+
+
+def test_a_contracted_grid_skips_empty_space_only_inside_the_box():
+    grid = OccupancyGrid(torch.full((3,), 2.0), 16**3, contracted=True)
+    grid.occupied.zero_()
+    grid.occupied[0, 8, 8] = True  # far out on -x: in the shell
+    origins, directions = torch.tensor([[0.9, 0.0, 0.0]]), torch.tensor([[-1.0, 0.0, 0.0]])
+    near, far, bend = ray_interval(torch.tensor([1.9]))
+    moved = grid.skip_empty(origins, directions, near, far, 0.05, bend)
+    assert 0 < moved.item() <= bend.item()  # across the empty box, not into the shell
+    field = _Fog()
+    samples = march_rays(field, grid, origins, directions, RaySampling(step=0.05))
+    assert len(samples.ray) > 0  # the occupied shell cell is still reached
+
+
+class _Fog:
+    def density(self, x):
+        return torch.ones(len(x)), x
+
+
+def test_opaque_images_make_an_unbounded_scene_and_transparent_ones_a_box(still_life):
+    data = load_dataset(still_life)
+    train = data.indices("train")
+    poses, intrinsics, alpha = data.poses[train], data.intrinsics, data.alpha[train]
+    assert alpha.min() < 1
+    assert not scene_box(poses, intrinsics, alpha).unbounded
+    box = scene_box(poses, intrinsics, np.ones_like(alpha))
+    assert box.unbounded and np.allclose(box.half, box.half[0])
+    assert np.allclose(box.field_extent, 2)
+    assert not scene_box(poses, intrinsics, np.ones_like(alpha), "box").unbounded
+    assert scene_box(poses, intrinsics, alpha, "unbounded").unbounded
+    ring = rig_poses("orbit", 8, [0, 0, 0], 4.0, (10, 10), 360)
+    assert scene_box(ring, intrinsics, np.ones((8, 2, 2))).unbounded
+
+
+def test_an_unbounded_run_trains_saves_and_renders(still_life, tmp_path):
+    run = trained(still_life, tiny_config(space="unbounded"), tmp_path / "run")
+    assert run.box.unbounded and run.occupancy.contracted
+    loaded = load_run(tmp_path / "run")
+    assert loaded.box.unbounded and loaded.occupancy.contracted
+    data = load_dataset(still_life)
+    values, opacity = loaded.render(data.poses[data.indices("test")][:1], progress=False)
+    assert np.isfinite(values).all() and np.all((opacity >= 0) & (opacity <= 1 + 1e-6))
+    assert np.allclose(values.sum(-1), opacity, atol=1e-4)  # additive weights sum to opacity
