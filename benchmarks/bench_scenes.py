@@ -1,17 +1,19 @@
 """Weight NeRFs on scenes rendered by Blender's Cycles (``benchmarks/scenes/``), not by our
-path tracer: test PSNR and SSIM against each scene's noise floor, per scene space.
+path tracer: PSNR and SSIM of held-out views on the training path (``val``) and off it
+(``test``) against each scene's noise floor, per scene space and strategy.
 
 For each scene: render it (once; ``blender -b --factory-startup -P SCRIPT -- DIR``), measure
-the noise floor (its test views against the same views rendered under another sampler
-seed, ``test_seed2/``), decompose its training views (``palette-decompose -k 6``), then
-train a weight NeRF per ``--space`` and score it on the test views (off the training path),
-saving an error map of each run's first test views (``OUT/SCENE-SPACE-errors.png``: truth,
-render, absolute error x4).
+the noise floor (the held-out views against the same views rendered under another sampler
+seed, ``val_seed2/`` and ``test_seed2/``), decompose its training views (``palette-decompose
+-k 6``), then train per ``--spaces`` x ``--strategies`` and score the held-out views,
+saving an error map of each run's first test views (``OUT/SCENE-SPACE-STRATEGY.png``:
+truth, render, absolute error x4).
 
-    python benchmarks/bench_scenes.py [--out benchmarks/out/scenes] [--scenes garden]
-        [--spaces box unbounded] [--iters P F]
+    python benchmarks/bench_scenes.py [--out benchmarks/out/scenes] [--scenes garden ...]
+        [--spaces auto] [--strategies two-stage rgb] [--iters P F]
 
-Needs Debian's ``blender`` (or PyPI's ``bpy``); runs are cached in OUT by scene and space.
+Needs Debian's ``blender`` (or PyPI's ``bpy``); runs are cached in OUT by scene, space and
+strategy (delete a run folder to train it again).
 """
 
 from __future__ import annotations
@@ -29,22 +31,14 @@ from PIL import Image
 from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
 from nerf_stage.editing import WeightRender
-from nerf_stage.evaluation import evaluate
+from nerf_stage.fields import RGB
 from nerf_stage.metrics import image_scores
 from nerf_stage.run import load_run
 from nerf_stage.trainer import train
 from palette_core import decompose, read_stack
 
 SCENES = Path(__file__).parent / "scenes"
-
-
-def noise_floor(scene: Path) -> dict:
-    """Scores of the test views against their renders under another sampler seed."""
-    data = load_dataset(scene)
-    names = [data.names[i] for i in data.indices("test")]
-    again = np.stack([np.asarray(Image.open(scene / "test_seed2" / Path(n).name).convert("RGB"),
-                                 np.float32) / 255 for n in names])
-    return image_scores(again, data.images[data.indices("test")])
+SPLITS = ("val", "test")
 
 
 def render_scene(name: str, out: Path) -> Path:
@@ -59,15 +53,28 @@ def render_scene(name: str, out: Path) -> Path:
     return scene
 
 
-def error_map(run_dir: Path, scene: Path, path: Path, views: int = 3) -> None:
-    run, data = load_run(run_dir), load_dataset(scene)
-    test = data.indices("test")[:views]
-    values, opacity = run.render(data.poses[test], progress=False)
-    render = WeightRender(values, opacity, [data.names[i] for i in test], run.palette,
-                          run.basis, run.order, np.asarray(run.config.background), {}).recolor()
-    truth = data.images[test]
+def noise_floor(data, split: str) -> dict:
+    """Scores of a split's views against their renders under another sampler seed."""
+    ids = data.indices(split)
+    again = [Image.open(data.root / f"{split}_seed2" / Path(data.names[i]).name) for i in ids]
+    rgba = np.stack([np.asarray(im.convert("RGBA"), np.float32) / 255 for im in again])
+    rgb = rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]) * data.background
+    return image_scores(rgb, data.images[ids])
+
+
+def rendered(run, data, ids) -> np.ndarray:
+    """(N, H, W, 3) colours of the run at the dataset's views ``ids`` (through the weights)."""
+    values, opacity = run.render(data.poses[ids])
+    background = np.asarray(run.config.background)
+    if run.field.kind == RGB:
+        return np.clip(values + (1 - opacity[..., None]) * background, 0, 1)
+    return WeightRender(values, opacity, [data.names[i] for i in ids], run.palette, run.basis,
+                        run.order, background, {}).recolor()
+
+
+def error_map(truth: np.ndarray, render: np.ndarray, path: Path, views: int = 3) -> None:
     rows = [np.concatenate([t, r, np.clip(4 * np.abs(r - t), 0, 1)], 1)
-            for t, r in zip(truth, render)]
+            for t, r in zip(truth[:views], render[:views])]
     picture = (np.concatenate(rows, 0) * 255).round().astype(np.uint8)
     Image.fromarray(picture).resize((picture.shape[1] * 2, picture.shape[0] * 2),
                                     Image.NEAREST).save(path)
@@ -76,31 +83,45 @@ def error_map(run_dir: Path, scene: Path, path: Path, views: int = 3) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/scenes"))
-    parser.add_argument("--scenes", nargs="+", default=sorted(p.stem for p in SCENES.glob("*.py")))
-    parser.add_argument("--spaces", nargs="+", default=["box", "unbounded"])
+    parser.add_argument("--scenes", nargs="+",
+                        default=sorted(p.stem for p in SCENES.glob("[!_]*.py")))
+    parser.add_argument("--spaces", nargs="+", default=["auto"])
+    parser.add_argument("--strategies", nargs="+", default=["two-stage", "rgb"])
     parser.add_argument("--iters", type=int, nargs=2, default=None, metavar=("P", "F"))
     args = parser.parse_args()
     results = {}
     for name in args.scenes:
         scene = render_scene(name, args.out)
-        floor = noise_floor(scene)
-        print(f"{name}: noise floor {floor['psnr']:.2f} dB, SSIM {floor['ssim']:.3f}", flush=True)
         data, stack = load_dataset(scene), read_stack(scene / "weights.npz")
+        floor = {split: noise_floor(data, split) for split in SPLITS}
+        print(f"{name}: noise floor " + ", ".join(f"{s} {floor[s]['psnr']:.2f} dB"
+                                                  for s in SPLITS), flush=True)
         for space in args.spaces:
-            config = TrainConfig(space=space)
-            if args.iters:
-                config.pretrain_iters, config.finetune_iters = args.iters
-            run_dir = args.out / f"{name}-{space}"
-            if not (run_dir / "checkpoint.pt").exists():
-                train(config, data, stack, run_dir, force=True)
-            run = load_run(run_dir)
-            scores = evaluate(run, data, progress=False)["reconstruction"]
-            seconds = run.record.log[-1]["seconds"]
-            error_map(run_dir, scene, args.out / f"{name}-{space}-errors.png")
-            results[f"{name}/{space}"] = {"floor": floor, "test": scores, "seconds": seconds}
-            print(f"{name} {space:>9}: test PSNR {scores['psnr']:.2f} dB "
-                  f"({floor['psnr'] - scores['psnr']:.2f} dB under the floor), SSIM "
-                  f"{scores['ssim']:.3f}, trained in {seconds:.0f} s", flush=True)
+            for strategy in args.strategies:
+                config = TrainConfig(space=space, strategy=strategy)
+                if args.iters:
+                    config.pretrain_iters, config.finetune_iters = args.iters
+                label = f"{name}-{space}-{strategy}"
+                run_dir = args.out / label
+                if not (run_dir / "checkpoint.pt").exists():
+                    train(config, data, stack, run_dir, force=True)
+                run = load_run(run_dir)
+                scores = {}
+                for split in SPLITS:
+                    ids = data.indices(split)
+                    render = rendered(run, data, ids)
+                    scores[split] = image_scores(render, data.images[ids])
+                    if split == "test":
+                        error_map(data.images[ids], render, args.out / f"{label}.png")
+                seconds = run.record.log[-1]["seconds"]
+                results[label] = {"floor": floor, "scores": scores, "seconds": seconds,
+                                  "unbounded": run.box.unbounded}
+                gaps = {s: floor[s]["psnr"] - scores[s]["psnr"] for s in SPLITS}
+                print(f"{label} ({'unbounded' if run.box.unbounded else 'box'}): "
+                      + ", ".join(f"{s} {scores[s]['psnr']:.2f} dB / SSIM "
+                                  f"{scores[s]['ssim']:.3f} ({gaps[s]:.2f} dB under the floor)"
+                                  for s in SPLITS)
+                      + f", trained in {seconds:.0f} s", flush=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
 
 

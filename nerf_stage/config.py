@@ -78,6 +78,11 @@ class TrainConfig:
     sparsity_weight: float = 3e-4
     """Weight of the Cauchy sparsity prior on each sample's optical thickness, while the
     density trains: it clears thin fog (fewer samples a ray, faster training and rendering)."""
+    distortion_weight: float = 2e-3
+    """Weight of mip-NeRF 360's distortion loss while the density trains, in unbounded scenes
+    only (``space``): it gathers each ray's weight where the ray ends, against the floaters
+    that views from one ring leave (docs/nerf.md, "Unbounded scenes"); box scenes do without
+    it."""
     rgb_weight: float = 1.0
     """Weight of the L2 loss of the colours through the weights (``weights @ basis``) against
     the images, added to the weights' own loss while the output is weights (0: the weights'
@@ -101,7 +106,8 @@ class TrainConfig:
         self.backbone = member(Backbone, self.backbone, "backbone")
         self.strategy = member(Strategy, self.strategy, "strategy")
         self.space = member(Space, self.space, "space")
-        at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight")
+        at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
+                      "distortion_weight")
         positive(self, "lr_decay")
         integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")
         integers(self, 1, 1 << 20, "batch_rays")

@@ -85,6 +85,8 @@ class Samples:
         Optical thickness sigma x step of each sample's step.
     opacity : (R,)
         Accumulated opacity of each ray.
+    t : (P,)
+        Where each sample lies on its ray, in the ray's marching parameter (``ray_interval``).
     """
 
     ray: torch.Tensor
@@ -93,13 +95,14 @@ class Samples:
     transmittance: torch.Tensor
     optical: torch.Tensor
     opacity: torch.Tensor
+    t: torch.Tensor
 
     def visible(self) -> Samples:
         """The samples in front of ``TERMINATION`` transmittance (the others skip the colour
         part)."""
         keep = self.transmittance.detach() > TERMINATION
         return Samples(self.ray[keep], self.h[keep], self.weight[keep],
-                       self.transmittance[keep], self.optical[keep], self.opacity)
+                       self.transmittance[keep], self.optical[keep], self.opacity, self.t[keep])
 
     def composite(self, values: torch.Tensor) -> torch.Tensor:
         """(P, C) per-sample values -> (R, C) composited along the rays."""
@@ -173,7 +176,7 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         sigma = torch.zeros_like(t).index_put((row, sample), sigma_packed)
         weights, transmittance = composite(sigma, step.expand_as(t), depth[alive])
         parts.append((alive[row], h, weights[row, sample], transmittance[row, sample],
-                      sigma_packed * step[row, 0]))
+                      sigma_packed * step[row, 0], t[row, sample]))
         depth = depth.index_add(0, alive, (sigma * step).sum(1))
         first[alive] += segment
         at = near[alive] + first[alive] * deltas[alive]
@@ -186,8 +189,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
             alive = alive[moved < far[alive]]
         if len(alive) == 0:
             break
-    ray, h, weight, transmittance, optical = (torch.cat(part) for part in zip(*parts))
-    return Samples(ray, h, weight, transmittance, optical, 1 - torch.exp(-depth))
+    ray, h, weight, transmittance, optical, t = (torch.cat(part) for part in zip(*parts))
+    return Samples(ray, h, weight, transmittance, optical, 1 - torch.exp(-depth), t)
 
 
 def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,

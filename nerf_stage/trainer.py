@@ -33,7 +33,7 @@ from palette_core.stack import WeightStack
 from .config import Strategy, TrainConfig
 from .data import Dataset, join_weights
 from .fields import RGB, make_field
-from .losses import recorded_rgb_loss, sparsity_loss, weight_loss
+from .losses import distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse
 from .occupancy import OccupancyGrid
 from .rendering import march_rays
@@ -143,7 +143,8 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
 
     L2 on RGB while the output is RGB, else ``losses.weight_loss``; plus, while the density
     trains, ``opacity_weight`` x L2 of the opacity against alpha and ``sparsity_weight``
-    x ``losses.sparsity_loss``.
+    x ``losses.sparsity_loss`` and, in unbounded scenes, ``distortion_weight`` x
+    ``losses.distortion_loss``.
     """
     values, acc, samples = run.render_pixels(rays["origins"], rays["directions"], generator)
     if run.field.kind == RGB:
@@ -158,6 +159,9 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
         loss = loss + run.config.opacity_weight * torch.mean((acc - rays["alpha"]) ** 2)
         if run.config.sparsity_weight:
             loss = loss + run.config.sparsity_weight * sparsity_loss(samples.optical)
+        if run.box.unbounded and run.config.distortion_weight:
+            loss = loss + run.config.distortion_weight * distortion_loss(
+                samples.ray, samples.t, samples.weight, run.sampling.step or 0.0, len(acc))
     with torch.no_grad():
         mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"]) ** 2))
     return loss, psnr_from_mse(max(mse, 1e-10))

@@ -81,3 +81,22 @@ def test_an_unbounded_run_trains_saves_and_renders(still_life, tmp_path):
     values, opacity = loaded.render(data.poses[data.indices("test")][:1], progress=False)
     assert np.isfinite(values).all() and np.all((opacity >= 0) & (opacity <= 1 + 1e-6))
     assert np.allclose(values.sum(-1), opacity, atol=1e-4)  # additive weights sum to opacity
+
+
+def test_distortion_loss_is_the_pairwise_sum_and_prefers_compact_rays(rng):
+    from nerf_stage.losses import distortion_loss
+
+    ray = torch.as_tensor(np.sort(rng.integers(0, 4, 40)))
+    t = torch.cat([torch.sort(torch.as_tensor(rng.uniform(0, 3, int((ray == r).sum()))))[0]
+                   for r in range(4)])
+    w = torch.as_tensor(rng.uniform(0, 0.2, 40))
+    brute = sum((w[ray == r][:, None] * w[ray == r][None] * (t[ray == r][:, None]
+                 - t[ray == r][None]).abs()).sum() + (w[ray == r] ** 2).sum() * 0.1 / 3
+                for r in range(4)) / 4
+    assert torch.isclose(distortion_loss(ray, t, w, 0.1, 4), brute)
+    one = torch.zeros(10, dtype=torch.long)
+    steps = torch.linspace(0, 1, 10)
+    compact = torch.tensor([0, 0, 0, 0, 0.5, 0.5, 0, 0, 0, 0])
+    spread = torch.tensor([0.5, 0, 0, 0, 0, 0, 0, 0, 0, 0.5])
+    assert distortion_loss(one, steps, compact, 0.1, 1) < distortion_loss(one, steps, spread,
+                                                                           0.1, 1)

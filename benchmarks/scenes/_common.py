@@ -1,9 +1,11 @@
 """What the Blender scene scripts share: materials, cameras, and writing a Blender-layout
-dataset with a second render of its test views under another sampler seed.
+dataset: training views, held-out views on the training path (``val``) and off it
+(``test``), and both held-out splits rendered again under another sampler seed
+(``val_seed2/``, ``test_seed2/``: the noise floor).
 
 A scene script builds its scene with ``bpy`` and calls ``render_dataset`` with its camera
 poses; run it as ``blender -b --factory-startup -P SCRIPT -- OUTDIR [--resolution N]
-[--views TRAIN TEST] [--spp N]``.
+[--views TRAIN VAL TEST] [--spp N]``.
 """
 
 import argparse
@@ -16,11 +18,12 @@ import bpy
 from mathutils import Matrix, Vector
 
 
-def parse(views=(100, 12)) -> argparse.Namespace:
+def parse(views=(100, 8, 8)) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog=Path(sys.argv[-1]).name)
     parser.add_argument("outdir", type=Path)
     parser.add_argument("--resolution", type=int, default=100)
-    parser.add_argument("--views", type=int, nargs=2, default=views, metavar=("TRAIN", "TEST"))
+    parser.add_argument("--views", type=int, nargs=3, default=views,
+                        metavar=("TRAIN", "VAL", "TEST"))
     parser.add_argument("--spp", type=int, default=64)
     argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
     return parser.parse_args(argv)
@@ -109,15 +112,16 @@ def _render(folder: Path, matrices, seed: int) -> list:
     return frames
 
 
-def render_dataset(args, train_poses, test_poses) -> None:
-    """Render train and test views (seed 0) as a Blender-layout dataset in ``args.outdir``,
-    and the test views again under seed 1 into ``test_seed2/`` (the noise floor)."""
+def render_dataset(args, train_poses, val_poses, test_poses) -> None:
+    """Render the three splits (seed 0) as a Blender-layout dataset in ``args.outdir``, and
+    the held-out ones again under seed 1 into ``val_seed2/`` and ``test_seed2/``."""
     scene = bpy.context.scene
     scene.render.resolution_x = scene.render.resolution_y = args.resolution
     scene.render.resolution_percentage = 100
     scene.cycles.samples = args.spp
-    for split, poses in (("train", train_poses), ("test", test_poses)):
+    for split, poses in (("train", train_poses), ("val", val_poses), ("test", test_poses)):
         frames = _render(args.outdir / split, poses, seed=0)
         data = {"camera_angle_x": scene.camera.data.angle, "frames": frames}
         (args.outdir / f"transforms_{split}.json").write_text(json.dumps(data, indent=1))
-    _render(args.outdir / "test_seed2", test_poses, seed=1)
+        if split != "train":
+            _render(args.outdir / f"{split}_seed2", poses, seed=1)

@@ -1,6 +1,6 @@
 """A forward-facing scene (the LLFF kind): objects on a table in front of a textured wall and
-an open doorway onto a far sky, seen by cameras on a small grid that all face forward. Test
-views sit between and in front of the training grid.
+an open doorway onto a far sky, seen by cameras on a small grid that all face forward. Val
+views lie in the grid's plane between training views, test views in front of it.
 
     blender -b --factory-startup -P benchmarks/scenes/forward.py -- OUTDIR
 """
@@ -63,12 +63,15 @@ def grid(n: int, spread: float, depth: float) -> list:
 def main() -> None:
     args = parse()
     build()
-    train, test = args.views
+    train, val, test = args.views
     test_poses = [look_at((x, 2.6, z), (x * 0.3, -3.0, 0.6)) for x, z in
                   ((-0.55, 0.85), (0.35, 1.2), (0.0, 1.0), (0.6, 0.8), (-0.2, 1.3), (0.2, 0.7),
                    (-0.7, 1.1), (0.75, 1.25), (-0.35, 0.75), (0.45, 1.0), (0.1, 1.15),
                    (-0.1, 0.9))[:test]]
-    render_dataset(args, grid(train, 1.8, 3.0), test_poses)
+    between = grid(train + val, 1.8, 3.0)  # every few views of a finer grid are held out
+    held = set(range(1, train + val, (train + val) // val)[:val])
+    render_dataset(args, [p for i, p in enumerate(between) if i not in held],
+                   [between[i] for i in sorted(held)], test_poses)
 
 
 main()

@@ -1,7 +1,7 @@
 """An unbounded outdoor scene: a glossy sphere, a textured cube and a matte torus on a
 textured ground that reaches the horizon under a sky, with blocks far outside the cameras'
-ring. Training views circle the objects at one radius with a height that waves; test views
-sit off that path (closer, higher, between the training azimuths).
+ring. Training views circle the objects at one radius with a height that waves; val views
+lie on that path between training views, test views off it (closer, higher).
 
     blender -b --factory-startup -P benchmarks/scenes/garden.py -- OUTDIR
 """
@@ -47,12 +47,17 @@ def build() -> None:
 def main() -> None:
     args = parse()
     build()
-    train, test = args.views
-    ring = [look_at((4 * math.cos(a), 4 * math.sin(a), 1.3 + 0.4 * math.sin(3 * a)), TARGET)
-            for a in (2 * math.pi * i / train for i in range(train))]
+    train, val, test = args.views
+
+    def ring(angles):
+        return [look_at((4 * math.cos(a), 4 * math.sin(a), 1.3 + 0.4 * math.sin(3 * a)),
+                        TARGET) for a in angles]
+
     off = [look_at((3 * math.cos(a), 3 * math.sin(a), 2.3), TARGET)
            for a in (2 * math.pi * (i + 0.37) / test for i in range(test))]
-    render_dataset(args, ring, off)
+    render_dataset(args, ring(2 * math.pi * i / train for i in range(train)),
+                   ring(2 * math.pi * (i * train // val + 0.5) / train for i in range(val)),
+                   off)
 
 
 main()

@@ -1,7 +1,8 @@
 """An object with a transparent background, in the NeRF-synthetic layout: a glossy teapot-like
 stack (a metallic sphere on a textured cylinder, a matte cone beside it) on a small glossy
 plinth, lit by a sun and the sky but rendered on transparent film. Training views cover the
-upper hemisphere; test views sit at other elevations and azimuths.
+upper hemisphere on a spiral; val views lie on that spiral between training views, test
+views off it (closer, at other elevations and azimuths).
 
     blender -b --factory-startup -P benchmarks/scenes/object.py -- OUTDIR
 """
@@ -55,8 +56,9 @@ def hemisphere(n: int, radius: float, elevations, phase: float) -> list:
 def main() -> None:
     args = parse()
     build()
-    train, test = args.views
-    render_dataset(args, hemisphere(train, 3.2, (10, 70), 0.0),
+    train, val, test = args.views
+    spiral = hemisphere(2 * train, 3.2, (10, 70), 0.0)  # every other view is held out
+    render_dataset(args, spiral[::2], spiral[1::2][::max(1, train // val)][:val],
                    hemisphere(test, 2.8, (20, 55), 0.31))
 
 
