@@ -22,26 +22,28 @@ def photo_dir(tmp_path, rng):
     return folder
 
 
-@pytest.fixture(scope="session")
-def cornell(tmp_path_factory):
-    """16x16 Cornell box (transport weights, order 2, 15 terms), simulated once a session."""
+def _simulated(tmp_path_factory, scene: str, spp: int):
+    """A built-in scene path traced at 16x16 with 4 training, 1 val and 2 test views."""
     from nerf_stage.cli import main as nerf
 
-    out = tmp_path_factory.mktemp("nerf") / "cb"
-    assert nerf(["simulate", "cornell-box", str(out), "--resolution", "16", "--spp", "4",
+    out = tmp_path_factory.mktemp("nerf") / scene
+    assert nerf(["simulate", scene, str(out), "--resolution", "16", "--spp", str(spp),
                  "--views", "4", "1", "2"]) == 0
     return out
 
 
 @pytest.fixture(scope="session")
+def cornell(tmp_path_factory):
+    """16x16 Cornell box (transport weights, order 2, 15 terms), simulated once a session."""
+    return _simulated(tmp_path_factory, "cornell-box", spp=4)
+
+
+@pytest.fixture(scope="session")
 def still_life(tmp_path_factory):
     """16x16 still life with an additive stack decomposed from its training views."""
-    from nerf_stage.cli import main as nerf
     from palette_core.cli.decompose import main as decompose
 
-    out = tmp_path_factory.mktemp("nerf") / "sl"
-    assert nerf(["simulate", "still-life", str(out), "--resolution", "16", "--spp", "2",
-                 "--views", "4", "1", "2"]) == 0
+    out = _simulated(tmp_path_factory, "still-life", spp=2)
     assert decompose([str(out / "train"), "-k", "4", "-o", str(out / "weights.npz")]) == 0
     return out
 
