@@ -141,6 +141,7 @@ class OccupancyGrid(nn.Module):
         free = self._tables()[1]
         t = near
         for _ in range(MAX_SKIPS):
+            # in a box: addcmul, as before contraction existed (box runs stay bit-identical)
             points = (torch.addcmul(origins, t[:, None], directions) if bend is None
                       else ray_points(origins, directions, t, bend))
             advance = free[self._cell(points)]
