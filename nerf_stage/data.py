@@ -7,8 +7,10 @@ Two layouts are read:
   ``transform_matrix`` camera-to-world, OpenGL axes), as ``nerf-stage simulate``
   writes them.
 - nerfstudio: one ``transforms.json`` with ``fl_x``, ``fl_y``, ``cx``, ``cy``,
-  ``w``, ``h`` and ``frames[]``; every eighth frame is held out for testing
-  (the LLFF convention), there is no validation split.
+  ``w``, ``h`` and ``frames[]``, where a frame may carry its own ``fl_x``, ``fl_y``,
+  ``cx``, ``cy`` (pinhole cameras that differ per frame, of one image size); every
+  eighth frame is held out for testing (the LLFF convention), there is no validation
+  split.
 
 Images are read as RGBA floats and composited on a chosen background; ``downscale`` N
 averages each N x N block of pixels (premultiplied by alpha), for captures larger than the
@@ -34,6 +36,7 @@ from .cameras import Intrinsics, focal_length
 SPLITS = ("train", "val", "test")
 NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
 MAX_DOWNSCALE = 64
+_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")  # a nerfstudio frame may override
 
 
 @dataclass
@@ -50,6 +53,7 @@ class Dataset:
     poses : (N, 4, 4) float64
         Camera-to-world matrices, OpenGL axes.
     intrinsics : Intrinsics
+        The first frame's camera; every frame's has its image size.
     images : (N, H, W, 3) float32
         Colours composited on ``background``.
     alpha : (N, H, W) float32
@@ -60,6 +64,8 @@ class Dataset:
         Frames were allowed outside ``root`` (``load_dataset``).
     downscale : int
         The images are this many times smaller than the files (``load_dataset``).
+    frame_intrinsics : list of Intrinsics or None
+        Each frame's camera, where they differ (``camera``).
     """
 
     root: Path
@@ -73,6 +79,15 @@ class Dataset:
     layout: str = "blender"
     frames_outside: bool = False
     downscale: int = 1
+    frame_intrinsics: list[Intrinsics] | None = None
+
+    def camera(self, i: int) -> Intrinsics:
+        """Frame ``i``'s camera."""
+        return self.intrinsics if self.frame_intrinsics is None else self.frame_intrinsics[i]
+
+    def cameras(self, ids) -> list[Intrinsics]:
+        """The cameras of the frames ``ids``."""
+        return [self.camera(i) for i in ids]
 
     def indices(self, split: str) -> np.ndarray:
         """Frame indices of one split."""
@@ -104,9 +119,13 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
         height, width = rgba[0].shape[:2]
         focal = focal_length(width, angle)
         intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
+        frame_intrinsics = None
     elif (root / "transforms.json").is_file():
         layout = "nerfstudio"
-        names, splits, poses, intrinsics = _read_nerfstudio(root, frames_outside)
+        names, splits, poses, frame_intrinsics = _read_nerfstudio(root, frames_outside)
+        intrinsics = frame_intrinsics[0]
+        if all(camera == intrinsics for camera in frame_intrinsics):
+            frame_intrinsics = None
         rgba = [_read_rgba(root / name) for name in names]
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout) "
@@ -122,10 +141,12 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
                          f"downscaled {downscale} times")
     rgba = np.stack([block_mean(im, downscale, rgba=True) for im in rgba])
     intrinsics = intrinsics.downscaled(downscale)
+    if frame_intrinsics is not None:
+        frame_intrinsics = [camera.downscaled(downscale) for camera in frame_intrinsics]
     alpha = rgba[..., 3]
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
-                   alpha, background, layout, frames_outside, downscale)
+                   alpha, background, layout, frames_outside, downscale, frame_intrinsics)
 
 
 def check_downscale(factor) -> int:
@@ -280,17 +301,24 @@ def _read_blender(root: Path, frames_outside: bool):
 def _read_nerfstudio(root: Path, frames_outside: bool):
     path = root / "transforms.json"
     data = _load_json(path)
-    intrinsics = Intrinsics(
-        width=_field(data, "w", path, int), height=_field(data, "h", path, int),
-        fx=_field(data, "fl_x", path), fy=_field(data, "fl_y", path),
-        cx=_field(data, "cx", path), cy=_field(data, "cy", path),
-    )
     names, poses = _frames(data, path, "", frames_outside)
     if not names:
         raise InputError(f"{path} lists no frames")
+    cameras = []
+    for i, frame in enumerate(data["frames"]):
+        own = {key: frame[key] for key in _CAMERA_KEYS if key in frame}
+        fields, where = {**data, **own}, f"{path}: frames[{i}]" if own else path
+        cameras.append(Intrinsics(
+            width=_field(fields, "w", where, int), height=_field(fields, "h", where, int),
+            fx=_field(fields, "fl_x", where), fy=_field(fields, "fl_y", where),
+            cx=_field(fields, "cx", where), cy=_field(fields, "cy", where)))
+    sizes = {(camera.width, camera.height) for camera in cameras}
+    if len(sizes) > 1:
+        listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
+        raise InputError(f"{path}: frames of different image sizes ({listed}) are not supported")
     splits = ["test" if i % NERFSTUDIO_HOLDOUT == NERFSTUDIO_HOLDOUT - 1 and len(names) > 1
               else "train" for i in range(len(names))]
-    return names, splits, np.array(poses), intrinsics
+    return names, splits, np.array(poses), cameras
 
 
 def _read_rgba(path: Path) -> np.ndarray:

@@ -80,23 +80,25 @@ class WeightRender:
 
 
 def render_poses(run: Run, dataset, split: str | None, orbit: int | None):
-    """Names and (N, 4, 4) poses of a split of the run's dataset, or of an orbit of N views."""
+    """Names, (N, 4, 4) poses and cameras (None: the run's) of a split of the run's dataset,
+    or of an orbit of N views."""
     train = dataset.indices("train")
     if orbit is not None:
         if not 1 <= orbit <= MAX_ORBIT:
             raise InputError(f"--orbit must be in [1, {MAX_ORBIT}], got {orbit}")
-        return [f"orbit_{i:03d}" for i in range(orbit)], orbit_poses(dataset.poses[train],
-                                                                    orbit, run.box.centre)
+        return ([f"orbit_{i:03d}" for i in range(orbit)],
+                orbit_poses(dataset.poses[train], orbit, run.box.centre), None)
     ids = dataset.indices(split)
     if len(ids) == 0:
         raise InputError(f"dataset {dataset.root} has no {split} views")
-    return [Path(dataset.names[i]).stem for i in ids], dataset.poses[ids]
+    return [Path(dataset.names[i]).stem for i in ids], dataset.poses[ids], dataset.cameras(ids)
 
 
 def render_weights(run: Run, names: list[str], poses: np.ndarray, source: dict,
-                   progress: bool = True, intrinsics: Intrinsics | None = None) -> WeightRender:
+                   progress: bool = True,
+                   intrinsics: Intrinsics | list[Intrinsics] | None = None) -> WeightRender:
     """Render the run's weights for ``poses`` (runs the network), with the training
-    camera's ``intrinsics`` unless given."""
+    camera unless ``intrinsics`` gives one or one a view (``Run.render``)."""
     if run.field.kind == RGB:
         raise InputError("this run was trained on RGB only (strategy 'rgb'): it has no weights")
     weights, opacity = run.render(poses, progress, intrinsics)
@@ -215,9 +217,9 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     reused = render is not None and render.source == source
     if not reused:
         dataset = run.dataset()
-        names, poses = render_poses(run, dataset, split, orbit)
+        names, poses, cameras = render_poses(run, dataset, split, orbit)
         renderer = run if baked is None else run.baked(baked)
-        render = render_weights(renderer, names, poses, source, progress)
+        render = render_weights(renderer, names, poses, source, progress, cameras)
         with atomic_outputs(force) as stage:
             write_render(render, stage(cache))
     if templates:

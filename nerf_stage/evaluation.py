@@ -47,10 +47,10 @@ def evaluate(run: Run, dataset, edit: np.ndarray | None = None,
     recoloured with ``edit`` (default ``rolled_palette``) against the scene
     re-simulated with that palette.
     """
-    names, poses = render_poses(run, dataset, "test", None)
+    names, poses, cameras = render_poses(run, dataset, "test", None)
     truth = dataset.images[dataset.indices("test")]
     start = time.perf_counter()
-    values, opacity = run.render(poses, progress=progress)
+    values, opacity = run.render(poses, progress, cameras)
     seconds = (time.perf_counter() - start) / len(poses)
     background = np.asarray(run.config.background, np.float64)
     scores = {"views": len(poses), "seconds_per_view": seconds}

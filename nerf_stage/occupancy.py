@@ -61,7 +61,7 @@ class OccupancyGrid(nn.Module):
         """A grid of about ``cells`` cells over the space of ``box`` (its ``field_extent``)."""
         return cls(torch.as_tensor(box.field_extent, dtype=torch.float32), cells, box.unbounded)
 
-    def carve(self, box: SceneBox, poses: np.ndarray, intrinsics: Intrinsics,
+    def carve(self, box: SceneBox, poses: np.ndarray, intrinsics: list[Intrinsics],
               alpha: np.ndarray) -> None:
         """Start from the visual hull of views (``visual_hull``) at this grid's resolution."""
         self.hull = torch.as_tensor(visual_hull(box, self.resolution.cpu().numpy(), poses,

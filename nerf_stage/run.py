@@ -149,9 +149,11 @@ class Run:
 
     @torch.no_grad()
     def render(self, poses: np.ndarray, progress: bool = False,
-               intrinsics: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Render whole views, with the training camera's ``intrinsics`` unless given; a
-        pixel is the mean of its ``TrainConfig.supersampling``^2 rays.
+               intrinsics: Intrinsics | list[Intrinsics] | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Render whole views, with the training camera unless ``intrinsics`` gives one
+        camera or one a view (of one size); a pixel is the mean of its
+        ``TrainConfig.supersampling``^2 rays.
 
         Returns
         -------
@@ -161,11 +163,13 @@ class Run:
         """
         self.field.eval()
         device = self.occupancy.extent.device
-        intrinsics = intrinsics or self.intrinsics
-        shape = (intrinsics.height, intrinsics.width, self.config.supersampling ** 2)
+        cameras = (intrinsics if isinstance(intrinsics, list)
+                   else [intrinsics or self.intrinsics] * len(poses))
         values, accs = [], []
-        for pose in tqdm(poses, desc="render", unit="view", disable=not progress):
-            origins, directions = normalised_rays(pose, intrinsics, self.box, device,
+        for pose, camera in tqdm(zip(poses, cameras), desc="render", unit="view",
+                                 total=len(poses), disable=not progress):
+            shape = (camera.height, camera.width, self.config.supersampling ** 2)
+            origins, directions = normalised_rays(pose, camera, self.box, device,
                                                   self.config.supersampling)
             chunks = (render_rays(self.field, self.occupancy, o, d, self.render_sampling)
                       for o, d in zip(origins.flatten(0, 1).split(RENDER_CHUNK),

@@ -60,9 +60,9 @@ class SceneBox:
                 "unbounded": self.unbounded}
 
 
-def scene_box(poses: np.ndarray, intrinsics: Intrinsics, alpha: np.ndarray,
+def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray,
               space: str = "auto", resolution: int = 64) -> SceneBox:
-    """A box around what the cameras see.
+    """A box around what the cameras (``poses``, one ``intrinsics`` each) see.
 
     Starts from the cube around the point nearest to all optical axes, with half
     size 0.75 x the nearest camera's distance. ``space`` ``unbounded`` keeps that cube and
@@ -92,7 +92,7 @@ def scene_box(poses: np.ndarray, intrinsics: Intrinsics, alpha: np.ndarray,
 
 
 def visual_hull(box: SceneBox, resolution: np.ndarray, poses: np.ndarray,
-                intrinsics: Intrinsics, alpha: np.ndarray) -> np.ndarray:
+                intrinsics: list[Intrinsics], alpha: np.ndarray) -> np.ndarray:
     """(X, Y, Z) bool: cells of ``box`` that no view shows as transparent.
 
     A cell is carved when its centre projects inside a view onto a pixel whose
@@ -103,17 +103,17 @@ def visual_hull(box: SceneBox, resolution: np.ndarray, poses: np.ndarray,
     points = box.centre + grid * box.half
     keep = np.ones(len(points), bool)
     radius = 0.5 * float(np.linalg.norm(2 * box.half / resolution))  # of a cell's bounding ball
-    for pose, mask in zip(poses, alpha):
+    for pose, camera, mask in zip(poses, intrinsics, alpha):
         local = (points - pose[:3, 3]) @ pose[:3, :3]
         depth = -local[:, 2]
         ahead = depth > radius
         safe = np.where(ahead, depth, 1.0)
-        u = intrinsics.cx + intrinsics.fx * local[:, 0] / safe
-        v = intrinsics.cy - intrinsics.fy * local[:, 1] / safe
-        inside = ahead & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
-        ui = np.clip(u.astype(np.int64), 0, intrinsics.width - 1)
-        vi = np.clip(v.astype(np.int64), 0, intrinsics.height - 1)
-        footprint = np.ceil(intrinsics.fx * radius / safe).astype(np.int64)  # pixels
+        u = camera.cx + camera.fx * local[:, 0] / safe
+        v = camera.cy - camera.fy * local[:, 1] / safe
+        inside = ahead & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        ui = np.clip(u.astype(np.int64), 0, camera.width - 1)
+        vi = np.clip(v.astype(np.int64), 0, camera.height - 1)
+        footprint = np.ceil(camera.fx * radius / safe).astype(np.int64)  # pixels
         carved = np.zeros(len(points), bool)
         for pixels in np.unique(footprint[inside]):
             dilated = maximum_filter(mask, size=2 * int(pixels) + 1)

@@ -81,8 +81,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     train_ids = dataset.indices("train")
     if stack.basis == Basis.ADDITIVE:
         weights = weights * dataset.alpha[train_ids, ..., None]
-    box = scene_box(dataset.poses[train_ids], dataset.intrinsics, dataset.alpha[train_ids],
-                    config.space)
+    box = scene_box(dataset.poses[train_ids], dataset.cameras(train_ids),
+                    dataset.alpha[train_ids], config.space)
     run = _new_run(config, box, dataset, stack, train_ids, device)
     run.record.weights = weights_path
     rays = _ray_bank(run, dataset, train_ids, weights, device)
@@ -174,7 +174,7 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
     field = make_field(config, box, kind, 3 if kind == RGB else channels)
     occupancy = OccupancyGrid.over(box, config.occupancy_voxels)
     if not box.unbounded:
-        occupancy.carve(box, dataset.poses[train_ids], dataset.intrinsics,
+        occupancy.carve(box, dataset.poses[train_ids], dataset.cameras(train_ids),
                         dataset.alpha[train_ids])
     record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,
                        stack_meta=stack.meta, frames_outside=dataset.frames_outside,
@@ -186,7 +186,7 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
 def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
     """Every training pixel: (N, n^2, 3) origins and directions of its rays, (N, 3) rgb,
     (N, M) weights, (N,) alpha."""
-    origins, directions = zip(*(normalised_rays(dataset.poses[i], dataset.intrinsics, run.box,
+    origins, directions = zip(*(normalised_rays(dataset.poses[i], dataset.camera(i), run.box,
                                                 device, run.config.supersampling)
                                 for i in train_ids))
 

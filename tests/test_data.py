@@ -63,6 +63,30 @@ def test_nerfstudio_layout(tmp_path):
     assert np.allclose(data.poses[0], POSE) and np.all(data.alpha == 1)
 
 
+def test_nerfstudio_frames_may_carry_their_own_cameras(tmp_path):
+    frames = []
+    for i in range(3):
+        write_png(tmp_path / "images" / f"frame_{i}.png", np.full((4, 6, 3), 100))
+        frames.append({"file_path": f"images/frame_{i}.png", "transform_matrix": POSE[:3]})
+    frames[1].update(fl_x=7.0, cx=2.5)
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"fl_x": 5.0, "fl_y": 6.0, "cx": 3.1, "cy": 1.9, "w": 6, "h": 4, "frames": frames}))
+    data = load_dataset(tmp_path)
+    assert [data.camera(i).fx for i in range(3)] == [5, 7, 5]
+    assert data.camera(1).cx == 2.5 and data.camera(1).fy == 6
+    assert load_dataset(tmp_path, downscale=2).camera(1).fx == 3.5
+    frames[2]["w"] = 8
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"fl_x": 5.0, "fl_y": 6.0, "cx": 3.1, "cy": 1.9, "w": 6, "h": 4, "frames": frames}))
+    with pytest.raises(InputError, match="different image sizes"):
+        load_dataset(tmp_path)
+    frames[2].update(w=6, fl_y=-1)
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"fl_x": 5.0, "fl_y": 6.0, "cx": 3.1, "cy": 1.9, "w": 6, "h": 4, "frames": frames}))
+    with pytest.raises(InputError, match=r"frames\[2\].*fl_y"):
+        load_dataset(tmp_path)
+
+
 @pytest.mark.parametrize("layout", ["nerfstudio", "blender"])
 @pytest.mark.parametrize("escape", ["absolute", "climbing"])
 def test_frames_stay_inside_the_folder(tmp_path, capsys, layout, escape):

@@ -32,8 +32,8 @@ def test_m_channel_compositing_equals_rgb_compositing_for_one_hot_weights(rng):
 def test_visual_hull_keeps_the_objects(still_life):
     data = load_dataset(still_life)
     train_ids = data.indices("train")
-    box = scene_box(data.poses[train_ids], data.intrinsics, data.alpha[train_ids])
-    hull = visual_hull(box, np.array([16, 16, 16]), data.poses[train_ids], data.intrinsics,
+    box = scene_box(data.poses[train_ids], data.cameras(train_ids), data.alpha[train_ids])
+    hull = visual_hull(box, np.array([16, 16, 16]), data.poses[train_ids], data.cameras(train_ids),
                        data.alpha[train_ids])
     for centre in ([0.7, 0.5, -0.4], [-0.7, 0.4, -0.5], [1.1, 0.25, 0.7]):  # globe, box, ball
         cell = np.floor((np.array(centre) - box.centre + box.half) / (2 * box.half) * 16)
@@ -149,3 +149,18 @@ def test_the_free_distance_follows_the_occupied_cells():
     assert (occupancy.free_distance() > 8 * 3**0.5).all()  # nothing occupied: rays skip the box
     occupancy.occupied[0, 0, 0] = True
     assert occupancy.free_distance()[7, 7, 7] == 7 and occupancy.free_distance()[0, 0, 0] == 0
+
+
+def test_each_view_renders_with_its_own_camera(scene_run):
+    from dataclasses import replace
+
+    from nerf_stage.run import load_run
+
+    run = load_run(scene_run)
+    poses = orbit_poses(rig_poses("orbit", 4, [0, 0.4, 0], 4.5, (20, 30)), 2, [0, 0.4, 0])
+    wide = replace(run.intrinsics, fx=run.intrinsics.fx / 2, fy=run.intrinsics.fy / 2)
+    both, _ = run.render(poses, intrinsics=[run.intrinsics, wide])
+    first, _ = run.render(poses[:1])
+    second, _ = run.render(poses[1:], intrinsics=wide)
+    assert np.array_equal(both[0], first[0]) and np.array_equal(both[1], second[0])
+    assert not np.array_equal(run.render(poses[1:])[0][0], second[0])

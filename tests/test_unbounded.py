@@ -60,7 +60,7 @@ class _Fog:
 def test_opaque_images_make_an_unbounded_scene_and_transparent_ones_a_box(still_life):
     data = load_dataset(still_life)
     train = data.indices("train")
-    poses, intrinsics, alpha = data.poses[train], data.intrinsics, data.alpha[train]
+    poses, intrinsics, alpha = data.poses[train], data.cameras(train), data.alpha[train]
     assert alpha.min() < 1
     assert not scene_box(poses, intrinsics, alpha).unbounded
     box = scene_box(poses, intrinsics, np.ones_like(alpha))
@@ -69,7 +69,7 @@ def test_opaque_images_make_an_unbounded_scene_and_transparent_ones_a_box(still_
     assert not scene_box(poses, intrinsics, np.ones_like(alpha), "box").unbounded
     assert scene_box(poses, intrinsics, alpha, "unbounded").unbounded
     ring = rig_poses("orbit", 8, [0, 0, 0], 4.0, (10, 10), 360)
-    assert scene_box(ring, intrinsics, np.ones((8, 2, 2))).unbounded
+    assert scene_box(ring, intrinsics[:1] * 8, np.ones((8, 2, 2))).unbounded
 
 
 def test_an_unbounded_run_trains_saves_and_renders(still_life, tmp_path):
