@@ -98,9 +98,8 @@ def main() -> None:
                                                   for s in SPLITS), flush=True)
         for space in args.spaces:
             for strategy in args.strategies:
-                config = TrainConfig(space=space, strategy=strategy)
-                if args.iters:
-                    config.pretrain_iters, config.finetune_iters = args.iters
+                iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
+                config = TrainConfig(space=space, strategy=strategy, **iters)
                 label = f"{name}-{space}-{strategy}"
                 run_dir = args.out / label
                 if not (run_dir / "checkpoint.pt").exists():

@@ -39,6 +39,13 @@ def test_marching_is_linear_in_the_box_then_in_disparity():
     assert torch.allclose(points[0, :, 0], torch.tensor([0.5, 1.0, 1.5, 1.75]))
 
 
+class _Fog:
+    """A field of density 1 everywhere."""
+
+    def density(self, x):
+        return torch.ones(len(x)), x
+
+
 def test_a_contracted_grid_skips_empty_space_only_inside_the_box():
     grid = OccupancyGrid(torch.full((3,), 2.0), 16**3, contracted=True)
     grid.occupied.zero_()
@@ -50,11 +57,6 @@ def test_a_contracted_grid_skips_empty_space_only_inside_the_box():
     field = _Fog()
     samples = march_rays(field, grid, origins, directions, RaySampling(step=0.05))
     assert len(samples.ray) > 0  # the occupied shell cell is still reached
-
-
-class _Fog:
-    def density(self, x):
-        return torch.ones(len(x)), x
 
 
 def test_opaque_images_make_an_unbounded_scene_and_transparent_ones_a_box(still_life):
