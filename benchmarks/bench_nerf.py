@@ -74,11 +74,13 @@ PAPER_WIDTHS = {128: (24.262, 30.297), 256: (24.730, 30.525), 512: (24.732, 30.6
 
 
 def prepare(scene: str, data: Path) -> tuple[Path, Path]:
-    """Simulate ``scene`` (once) and return its dataset folder and weight stack."""
+    """Simulate ``scene`` (once) and return its dataset folder and weight stack: its
+    transport weights, or, for a scene without editable materials, ``palette-decompose -k 6``
+    of its training views."""
     root = data / scene
     if not (root / "transforms_test.json").is_file():
         assert nerf_stage(["simulate", scene, str(root), "--force"]) == 0
-    if scene == "cornell-box":
+    if (root / "weights.npz").is_file():
         return root, root / "weights.npz"
     stack = data / f"{scene}-k6.npz"
     if not stack.is_file():

@@ -83,6 +83,11 @@ class TrainConfig:
     only (``space``): it gathers each ray's weight where the ray ends, against the floaters
     that views from one ring leave (docs/nerf.md, "Unbounded scenes"); box scenes do without
     it."""
+    near_gradient: float = 1.0
+    """In unbounded scenes, gradients of samples nearer to the camera than this (normalised
+    units: the box's half size) are scaled down by the square of their distance over it
+    (``rendering.scale_near_gradients``), against floaters in front of the cameras; 0: off.
+    Box scenes start their samples at the box, away from the cameras, and do without it."""
     rgb_weight: float = 1.0
     """Weight of the L2 loss of the colours through the weights (``weights @ basis``) against
     the images, added to the weights' own loss while the output is weights (0: the weights'
@@ -107,7 +112,7 @@ class TrainConfig:
         self.strategy = member(Strategy, self.strategy, "strategy")
         self.space = member(Space, self.space, "space")
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
-                      "distortion_weight")
+                      "distortion_weight", "near_gradient")
         positive(self, "lr_decay")
         integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")
         integers(self, 1, 1 << 20, "batch_rays")

@@ -27,3 +27,27 @@ def image_scores(predicted: np.ndarray, truth: np.ndarray) -> dict:
         "ssim": float(np.mean([structural_similarity(p, t, channel_axis=-1, data_range=1.0)
                                for p, t in zip(predicted, truth)])),
     }
+
+
+def edit_response(before: np.ndarray, after: np.ndarray, truth_before: np.ndarray,
+                  truth_after: np.ndarray, seen: float = 0.1) -> tuple[float, float]:
+    """How much of an edit a render carries where the truth says the edit shows.
+
+    With d = after - before and d* = truth_after - truth_before, (..., 3) colours, over
+    the pixels where |d*| > ``seen``: sum d . d* / sum |d*|^2, which is 1 when the render
+    moves as the truth does and 0 when the edit moves nothing there (a material that the
+    render gave to another channel), and the share of pixels that count.
+
+    Examples
+    --------
+    >>> truth = np.zeros((2, 3)), np.array([[0.5, 0, 0], [0, 0, 0]])
+    >>> edit_response(*truth, *truth), edit_response(truth[0], truth[0], *truth)
+    ((1.0, 0.5), (0.0, 0.5))
+    """
+    moved = np.asarray(truth_after, np.float64) - truth_before
+    shown = np.linalg.norm(moved, axis=-1) > seen
+    if not shown.any():
+        return float("nan"), 0.0
+    carried = (np.asarray(after, np.float64) - before)[shown]
+    return (float(np.sum(carried * moved[shown]) / np.sum(moved[shown] ** 2)),
+            float(shown.mean()))

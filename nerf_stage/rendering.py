@@ -127,8 +127,19 @@ class Samples:
         return self.opacity[:, None] * values if deferred else self.composite(values)
 
 
+def scale_near_gradients(values: torch.Tensor, t: torch.Tensor, near: float) -> torch.Tensor:
+    """``values`` (P, ...) unchanged, their gradients scaled by min(1, (t / near)^2) at the
+    samples' distances ``t`` (P,) from the camera: a point close to a camera covers many of
+    its pixels, so without this its gradients outweigh those of the views that see it
+    from afar, and it learns to be a floater (Philip and Deschaintre. Floaters no more:
+    radiance field gradient scaling for improved near-camera training. EGSR 2023)."""
+    scale = (t / near).clamp(max=1).square().view(-1, *(1,) * (values.dim() - 1))
+    return values * scale + (values * (1 - scale)).detach()
+
+
 def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.Tensor,
-               sampling: RaySampling, generator: torch.Generator | None = None) -> Samples:
+               sampling: RaySampling, generator: torch.Generator | None = None,
+               near_gradient: float | None = None) -> Samples:
     """Sample rays and run the density part where the occupancy grid is occupied.
 
     Samples are spaced ``sampling.step`` apart from where a ray enters the box
@@ -137,7 +148,10 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     whose steps are about as long in the contracted space); ``generator``
     jitters them (training). Stepped rays start marching in whole steps past the empty
     space in front of them (``OccupancyGrid.skip_empty``), so their samples stay where
-    they were; samples in empty cells skip the field. Without gradients (rendering),
+    they were; samples in empty cells skip the field. ``near_gradient`` scales the
+    gradients of samples nearer than it to the camera (``scale_near_gradients``; the
+    parameter is the distance up to one box half size, so any ``near_gradient`` <= 1
+    works in unbounded scenes too). Without gradients (rendering),
     rays are marched ``SEGMENT`` samples at a time, a ray whose transmittance has
     fallen below ``TERMINATION`` is not marched further (early ray termination), and
     stepped rays skip empty space again after each segment (past a floater to the
@@ -173,6 +187,9 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         valid = (t < leave) & occupancy.lookup(points)
         row, sample = torch.nonzero(valid, as_tuple=True)
         sigma_packed, h = field.density(points[row, sample])
+        if near_gradient is not None:
+            sigma_packed, h = (scale_near_gradients(x, t[row, sample], near_gradient)
+                               for x in (sigma_packed, h))
         sigma = torch.zeros_like(t).index_put((row, sample), sigma_packed)
         weights, transmittance = composite(sigma, step.expand_as(t), depth[alive])
         parts.append((alive[row], h, weights[row, sample], transmittance[row, sample],
@@ -189,13 +206,36 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
             alive = alive[moved < far[alive]]
         if len(alive) == 0:
             break
+    if bend is not None:
+        parts.append(_sky_samples(field, origins, directions, far, bend, depth))
+        depth = depth.masked_fill(depth.detach() < -math.log(TERMINATION), math.inf)
     ray, h, weight, transmittance, optical, t = (torch.cat(part) for part in zip(*parts))
+    if bend is not None:  # each ray's sky sample after its others
+        order = torch.argsort(ray, stable=True)
+        ray, h, weight, transmittance, optical, t = (
+            x[order] for x in (ray, h, weight, transmittance, optical, t))
     return Samples(ray, h, weight, transmittance, optical, 1 - torch.exp(-depth), t)
+
+
+def _sky_samples(field, origins, directions, far, bend, depth) -> tuple:
+    """The sky of an unbounded scene: every ray that light still reaches ends on the boundary
+    of the contracted space, which takes all the light left (``march_rays``'s parts).
+
+    The point where a ray ends depends only on its direction, so the field's colour there is
+    a map of the sky at infinity (as the last sample of NeRF takes an infinite step, eq. 3).
+    Without it, rays that see the sky could only end in fog, which training views do not see
+    against the sky but views from elsewhere do."""
+    ends = torch.nonzero(depth.detach() < -math.log(TERMINATION), as_tuple=True)[0]
+    points = contraction.ray_points(origins[ends], directions[ends], far[ends], bend[ends])
+    _, h = field.density(points)
+    light = torch.exp(-depth[ends])
+    return ends, h, light, light, torch.zeros_like(light), far[ends]
 
 
 def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
                 directions: torch.Tensor, sampling: RaySampling,
-                generator: torch.Generator | None = None) -> tuple[torch.Tensor, Samples]:
+                generator: torch.Generator | None = None,
+                near_gradient: float | None = None) -> tuple[torch.Tensor, Samples]:
     """Composite the field's outputs along rays (``march_rays``); samples behind
     ``TERMINATION`` transmittance skip the colour part (``Samples.visible``), which runs
     on each sample or, for a ``deferred`` field, once a ray (``Samples.colour_inputs``).
@@ -208,7 +248,8 @@ def render_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor,
         All the rays' samples in occupied cells; ``samples.opacity`` (R,) is the
         accumulated opacity.
     """
-    samples = march_rays(field, occupancy, origins, directions, sampling, generator)
+    samples = march_rays(field, occupancy, origins, directions, sampling, generator,
+                         near_gradient)
     visible = samples.visible()
     values = field.colour(*visible.colour_inputs(directions, field.deferred))
     return visible.composite_colours(values, field.deferred), samples

@@ -141,9 +141,11 @@ class Run:
         samples : the rays' ``rendering.Samples``.
         """
         rays = directions.shape[1]
+        near = self.config.near_gradient if self.box.unbounded else 0.0
         values, samples = render_rays(self.field, self.occupancy,
                                       origins.flatten(0, 1), directions.flatten(0, 1),
-                                      self.sampling, generator)
+                                      self.sampling, generator,
+                                      near if near and torch.is_grad_enabled() else None)
         return (values.view(-1, rays, values.shape[-1]).mean(1),
                 samples.opacity.view(-1, rays).mean(1), samples)
 

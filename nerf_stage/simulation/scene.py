@@ -31,7 +31,8 @@ import trimesh
 from palette_core.errors import InputError
 from palette_core.io import load_image
 
-BUILTIN_SCENES = ("cornell-box", "still-life")
+BUILTIN_SCENES = ("cornell-box", "still-life", "room-corner", "marbles", "open-field",
+                  "forward-shelf")
 OBJECT_TYPES = ("sphere", "quad", "box", "cylinder", "mesh")
 LIGHT_TYPES = ("area", "point")
 RIGS = ("orbit", "hemisphere", "front-arc")

@@ -1,0 +1,145 @@
+"""Every built-in simulated scene at the default training settings: the defaults are chosen
+on all of them, not on one.
+
+The scenes differ in camera rig (orbit, hemisphere, front arcs of 50 and 140 degrees, a
+narrow forward-facing arc), in what ends within view (a closed box, a floor and walls that
+stop, a field that reaches far beyond the cameras, a wall that fills every view), in
+object size (marbles a few pixels across) and in transport order (direct light, orders 1,
+2 and 3). Each is simulated once (``nerf-stage simulate``; a scene without editable
+materials is decomposed, ``palette-decompose -k 6``), trained with ``nerf-stage train``'s
+defaults (or ``--iters P F``) and scored on its test views: PSNR and SSIM through the
+weights, the global edit (every palette colour takes the next one's) against the scene
+re-simulated with it, and, for every editable material, the edit of that material alone
+(its colour inverted) against the exact truth from the simulator's weights of the test
+views (``metrics.edit_response``): 1 when the render moves as the truth does where the
+material is seen, 0 when the material went to another channel. A response below
+``LOST`` fails, however high the PSNR. One test view per scene, truth and render, before
+and after the global edit: ``OUT/simulated.png``.
+
+    python benchmarks/bench_simulated.py [--out benchmarks/out/simulated] [--scenes ...]
+                                         [--iters P F]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from bench_nerf import prepare, table
+from PIL import Image
+
+from nerf_stage.config import TrainConfig
+from nerf_stage.data import load_dataset
+from nerf_stage.editing import WeightRender, render_poses
+from nerf_stage.evaluation import evaluate, resimulated_views, rolled_palette
+from nerf_stage.metrics import edit_response
+from nerf_stage.run import CHECKPOINT, load_run
+from nerf_stage.simulation import BUILTIN_SCENES, SimulationRecord
+from nerf_stage.trainer import train
+from palette_core.basis import Basis, weights_to_rgb
+from palette_core.stack import read_stack
+
+LOST = 0.5  # an edit response below this: the material is lost to other channels
+
+
+def truth_views(stack, names, alpha, palette, background) -> np.ndarray:
+    """(N, H, W, 3) the simulator's views ``names`` (alpha (N, H, W)) recoloured with
+    ``palette`` through their exact transport weights, composited like the dataset's PNGs."""
+    weights = np.stack([np.asarray(stack.weights[stack.names.index(n)], np.float64)
+                        for n in names])
+    radiance = weights_to_rgb(weights, palette, Basis.TRANSPORT, stack.order)
+    a = alpha[..., None]
+    straight = np.clip(radiance / np.maximum(a, 1e-12), 0, 1)
+    return straight * a + (1 - a) * background
+
+
+def material_edits(run, dataset, stack) -> list[dict]:
+    """Per editable material: its colour inverted alone, the render's response to it
+    (``metrics.edit_response``) and the share of test pixels where it shows."""
+    names, poses, cameras = render_poses(run, dataset, "test", None)
+    values, opacity = run.render(poses, False, cameras)
+    background = np.asarray(run.config.background, np.float64)
+    render = WeightRender(values, opacity, names, run.palette, run.basis, run.order,
+                          background, {})
+    alpha = dataset.alpha[dataset.indices("test")]
+    before = render.recolor()
+    truth_before = truth_views(stack, names, alpha, run.palette, background)
+    rows = []
+    for k in range(len(run.palette)):
+        edit = run.palette.copy()
+        edit[k] = 1 - edit[k]
+        response, seen = edit_response(before, render.recolor(edit), truth_before,
+                                       truth_views(stack, names, alpha, edit, background))
+        rows.append({"material": k, "response": response, "seen": seen})
+    return rows
+
+
+def figure(rows: list, path: Path) -> None:
+    """One test view a scene: truth, render, truth edited, render edited."""
+    picture = np.concatenate([np.concatenate(row, 1) for row in rows], 0)
+    picture = (np.clip(picture, 0, 1) * 255).round().astype(np.uint8)
+    Image.fromarray(picture).resize((picture.shape[1] * 2, picture.shape[0] * 2),
+                                    Image.NEAREST).save(path)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/out/simulated"))
+    parser.add_argument("--scenes", nargs="+", default=list(BUILTIN_SCENES),
+                        choices=BUILTIN_SCENES)
+    parser.add_argument("--iters", type=int, nargs=2, default=None, metavar=("P", "F"))
+    args = parser.parse_args()
+    iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
+    config = TrainConfig(**iters)
+    results, rows, pictures = {}, [], []
+    for scene in args.scenes:
+        root, stack_path = prepare(scene, args.out)
+        dataset, stack = load_dataset(root, config.background), read_stack(stack_path)
+        rundir = args.out / f"{scene}-run"
+        if not (rundir / CHECKPOINT).is_file():
+            train(config, dataset, stack, rundir, force=True,
+                  weights_path=str(stack_path.resolve()))
+        run = load_run(rundir)
+        scores = evaluate(run, dataset, progress=False)
+        scores["seconds"] = run.record.log[-1]["seconds"]
+        scores["unbounded"] = run.box.unbounded
+        materials = material_edits(run, dataset, stack) if run.basis == Basis.TRANSPORT else []
+        scores["materials"] = materials
+        results[scene] = scores
+        edit = scores.get("edit", {})
+        lost = [m["material"] for m in materials if not m["response"] >= LOST]
+        rows.append([scene, "unbounded" if run.box.unbounded else "box",
+                     scores["reconstruction"]["psnr"], scores["reconstruction"]["ssim"],
+                     edit.get("psnr", float("nan")),
+                     " ".join(f"{m['response']:.2f}" for m in materials) or "-",
+                     ", ".join(map(str, lost)) or "none", scores["seconds"]])
+        pictures.append(_view_row(run, dataset))
+        print(f"{scene}: {rows[-1]}", flush=True)
+    table(f"Built-in scenes at {'the default budget' if not iters else args.iters} "
+          "(test views)",
+          ["scene", "space", "PSNR", "SSIM", "edit PSNR", "edit response per material",
+           f"lost (< {LOST})", "train s"], rows)
+    figure(pictures, args.out / "simulated.png")
+    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+
+
+def _view_row(run, dataset) -> list:
+    """Truth and render of the first test view, then both with the global edit (the truth
+    re-simulated; a scene without editable materials shows its render recoloured only)."""
+    names, poses, cameras = render_poses(run, dataset, "test", None)
+    values, opacity = run.render(poses[:1], False, cameras[:1])
+    background = np.asarray(run.config.background, np.float64)
+    render = WeightRender(values, opacity, names[:1], run.palette, run.basis, run.order,
+                          background, {})
+    edit = rolled_palette(run.palette)
+    truth = dataset.images[dataset.indices("test")[0]]
+    simulation = SimulationRecord.from_meta(run.record.stack_meta)
+    edited_truth = (resimulated_views(simulation, edit, poses[:1], background)[0]
+                    if run.basis == Basis.TRANSPORT and simulation else truth)
+    return [truth, render.recolor()[0], edited_truth, render.recolor(edit)[0]]
+
+
+if __name__ == "__main__":
+    main()
