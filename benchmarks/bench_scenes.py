@@ -19,7 +19,9 @@ strategy (delete a run folder to train it again).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -51,6 +53,24 @@ def render_scene(name: str, out: Path) -> Path:
     if not (scene / "weights.npz").exists():
         decompose([scene / "train"], k=6).write(scene / "weights.npz")
     return scene
+
+
+def exposed(scene: Path, sigma: float) -> Path:
+    """A copy of ``scene`` whose training photos each have their own exposure and white
+    balance, as a hand-held camera's do: gains exp(N(0, sigma)), one for the image times
+    one per channel (seeded); the held-out views as rendered. Decomposed anew."""
+    out = scene.with_name(f"{scene.name}-exposure{sigma:g}")
+    if not (out / "weights.npz").exists():
+        shutil.copytree(scene, out, dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns("weights*"))
+        rng = np.random.default_rng(0)
+        for png in sorted((out / "train").glob("*.png")):
+            rgba = np.asarray(Image.open(png).convert("RGBA"), np.float64)
+            gains = np.exp(rng.normal(0, sigma) + rng.normal(0, sigma, 3))
+            rgba[..., :3] = np.clip(rgba[..., :3] * gains, 0, 255)
+            Image.fromarray(rgba.round().astype(np.uint8)).save(png)
+        decompose([out / "train"], k=6).write(out / "weights.npz")
+    return out
 
 
 def noise_floor(data, split: str) -> dict:
@@ -88,39 +108,46 @@ def main() -> None:
     parser.add_argument("--spaces", nargs="+", default=["auto"])
     parser.add_argument("--strategies", nargs="+", default=["two-stage", "rgb"])
     parser.add_argument("--iters", type=int, nargs=2, default=None, metavar=("P", "F"))
+    parser.add_argument("--exposure", type=float, default=0.0, metavar="SIGMA",
+                        help="train on photos re-exposed by gains exp(N(0, SIGMA)) (exposed)")
+    parser.add_argument("--appearance", nargs="+", default=["off"], choices=("off", "on"),
+                        help="train without and/or with per-image colour transforms")
     args = parser.parse_args()
     results = {}
     for name in args.scenes:
         scene = render_scene(name, args.out)
+        if args.exposure:
+            scene, name = exposed(scene, args.exposure), f"{name}-exposure{args.exposure:g}"
         data, stack = load_dataset(scene), read_stack(scene / "weights.npz")
         floor = {split: noise_floor(data, split) for split in SPLITS}
         print(f"{name}: noise floor " + ", ".join(f"{s} {floor[s]['psnr']:.2f} dB"
                                                   for s in SPLITS), flush=True)
-        for space in args.spaces:
-            for strategy in args.strategies:
-                iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
-                config = TrainConfig(space=space, strategy=strategy, **iters)
-                label = f"{name}-{space}-{strategy}"
-                run_dir = args.out / label
-                if not (run_dir / "checkpoint.pt").exists():
-                    train(config, data, stack, run_dir, force=True)
-                run = load_run(run_dir)
-                scores = {}
-                for split in SPLITS:
-                    ids = data.indices(split)
-                    render = rendered(run, data, ids)
-                    scores[split] = image_scores(render, data.images[ids])
-                    if split == "test":
-                        error_map(data.images[ids], render, args.out / f"{label}.png")
-                seconds = run.record.log[-1]["seconds"]
-                results[label] = {"floor": floor, "scores": scores, "seconds": seconds,
-                                  "unbounded": run.box.unbounded}
-                gaps = {s: floor[s]["psnr"] - scores[s]["psnr"] for s in SPLITS}
-                print(f"{label} ({'unbounded' if run.box.unbounded else 'box'}): "
-                      + ", ".join(f"{s} {scores[s]['psnr']:.2f} dB / SSIM "
-                                  f"{scores[s]['ssim']:.3f} ({gaps[s]:.2f} dB under the floor)"
-                                  for s in SPLITS)
-                      + f", trained in {seconds:.0f} s", flush=True)
+        for space, strategy, appearance in itertools.product(args.spaces, args.strategies,
+                                                             args.appearance):
+            iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
+            config = TrainConfig(space=space, strategy=strategy,
+                                 appearance=appearance == "on", **iters)
+            label = f"{name}-{space}-{strategy}" + ("-appearance" * config.appearance)
+            run_dir = args.out / label
+            if not (run_dir / "checkpoint.pt").exists():
+                train(config, data, stack, run_dir, force=True)
+            run = load_run(run_dir)
+            scores = {}
+            for split in SPLITS:
+                ids = data.indices(split)
+                render = rendered(run, data, ids)
+                scores[split] = image_scores(render, data.images[ids])
+                if split == "test":
+                    error_map(data.images[ids], render, args.out / f"{label}.png")
+            seconds = run.record.log[-1]["seconds"]
+            results[label] = {"floor": floor, "scores": scores, "seconds": seconds,
+                              "unbounded": run.box.unbounded}
+            gaps = {s: floor[s]["psnr"] - scores[s]["psnr"] for s in SPLITS}
+            print(f"{label} ({'unbounded' if run.box.unbounded else 'box'}): "
+                  + ", ".join(f"{s} {scores[s]['psnr']:.2f} dB / SSIM "
+                              f"{scores[s]['ssim']:.3f} ({gaps[s]:.2f} dB under the floor)"
+                              for s in SPLITS)
+                  + f", trained in {seconds:.0f} s", flush=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
 
 

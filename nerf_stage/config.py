@@ -92,6 +92,11 @@ class TrainConfig:
     """Weight of the L2 loss of the colours through the weights (``weights @ basis``) against
     the images, added to the weights' own loss while the output is weights (0: the weights'
     loss alone)."""
+    appearance: bool = False
+    """Learn a colour transform per training image, applied after compositing, so that
+    exposure and white balance that change from photo to photo leak neither into the
+    geometry nor into the palette weights; renders show the images' average appearance
+    (``appearance.Appearance``). For photos; simulated and rendered scenes need none."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour behind the scene, RGB in [0, 1]."""
     space: Space = Space.AUTO
@@ -114,6 +119,8 @@ class TrainConfig:
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
                       "distortion_weight", "near_gradient")
         positive(self, "lr_decay")
+        if not isinstance(self.appearance, bool):
+            raise InputError(f"appearance must be true or false, got {self.appearance!r}")
         integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")
         integers(self, 1, 1 << 20, "batch_rays")
         integers(self, 1, 8, "supersampling")

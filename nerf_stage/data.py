@@ -12,9 +12,11 @@ Two layouts are read:
   eighth frame is held out for testing (the LLFF convention), there is no validation
   split.
 
-Images are read as RGBA floats and composited on a chosen background; ``downscale`` N
-averages each N x N block of pixels (premultiplied by alpha), for captures larger than the
-training resolution (nerfstudio's ``--downscale-factor``).
+Images are read as RGBA and composited on a chosen background; ``downscale`` N averages
+each N x N block of pixels (premultiplied by alpha), for captures larger than the training
+resolution (nerfstudio's ``--downscale-factor``): each photo is read as 8-bit and made small
+before the next is read, so a capture of full-size photos needs the memory of its small
+images only.
 """
 
 from __future__ import annotations
@@ -115,8 +117,8 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     if (root / "transforms_train.json").is_file():
         layout = "blender"
         names, splits, poses, angle = _read_blender(root, frames_outside)
-        rgba = [_read_rgba(root / name) for name in names]
-        height, width = rgba[0].shape[:2]
+        with open_image(root / names[0]) as first:
+            width, height = first.size
         focal = focal_length(width, angle)
         intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
         frame_intrinsics = None
@@ -126,20 +128,14 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
         intrinsics = frame_intrinsics[0]
         if all(camera == intrinsics for camera in frame_intrinsics):
             frame_intrinsics = None
-        rgba = [_read_rgba(root / name) for name in names]
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout) "
                          "nor transforms.json (nerfstudio layout): make one with nerf-stage "
                          "simulate SCENE DIR [--layout nerfstudio], or capture one")
-    wrong = [n for n, im in zip(names, rgba) if im.shape[:2] != (intrinsics.height,
-                                                                   intrinsics.width)]
-    if wrong:
-        raise InputError(f"{root}: images {_listing(wrong)} are not "
-                         f"{intrinsics.width}x{intrinsics.height} as the cameras say")
     if min(intrinsics.width, intrinsics.height) < downscale:
         raise InputError(f"{root}: images of {intrinsics.width}x{intrinsics.height} cannot be "
                          f"downscaled {downscale} times")
-    rgba = np.stack([block_mean(im, downscale, rgba=True) for im in rgba])
+    rgba = _read_frames(root, names, intrinsics, downscale)
     intrinsics = intrinsics.downscaled(downscale)
     if frame_intrinsics is not None:
         frame_intrinsics = [camera.downscaled(downscale) for camera in frame_intrinsics]
@@ -321,10 +317,28 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
     return names, splits, np.array(poses), cameras
 
 
-def _read_rgba(path: Path) -> np.ndarray:
-    """(H, W, 4) float32 in [0, 1]; images without alpha are opaque."""
-    with open_image(path) as im:
-        try:
-            return np.asarray(im.convert("RGBA"), np.float32) / 255.0
-        except (OSError, ValueError) as exc:
-            raise InputError(f"cannot read image {path}: {exc}") from None
+def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: int) -> np.ndarray:
+    """(N, H / n, W / n, 4) float32 RGBA in [0, 1] of the frames, ``downscale`` n times
+    smaller (``block_mean``; images without alpha are opaque). Each frame is read as 8-bit
+    and made small before the next, so full-size photos never sit in memory as floats.
+
+    Raises
+    ------
+    InputError
+        If a frame cannot be read or is not the camera's size (all such frames named).
+    """
+    frames, wrong = [], []
+    for name in names:
+        with open_image(root / name) as im:
+            try:
+                rgba = np.asarray(im.convert("RGBA"))
+            except (OSError, ValueError) as exc:
+                raise InputError(f"cannot read image {root / name}: {exc}") from None
+        if rgba.shape[:2] != (camera.height, camera.width):
+            wrong.append(name)
+        elif not wrong:
+            frames.append(block_mean(rgba.astype(np.float32) / 255.0, downscale, rgba=True))
+    if wrong:
+        raise InputError(f"{root}: images {_listing(wrong)} are not "
+                         f"{camera.width}x{camera.height} as the cameras say")
+    return np.stack(frames)

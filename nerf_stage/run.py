@@ -19,6 +19,7 @@ from palette_core.basis import Basis, basis_terms, check_basis
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs
 
+from .appearance import Appearance
 from .cameras import Intrinsics
 from .config import BAKE_FACTOR, TrainConfig
 from .data import Dataset, check_downscale, load_dataset
@@ -89,6 +90,8 @@ class Run:
         The field outputs RGB while ``field.kind`` is ``fields.RGB``.
     order : int
     record : RunRecord
+    appearance : Appearance or None
+        The training images' colour transforms (``TrainConfig.appearance``), while training.
     """
 
     config: TrainConfig
@@ -100,6 +103,7 @@ class Run:
     basis: Basis
     order: int
     record: RunRecord
+    appearance: Appearance | None = None
 
     @property
     def terms(self) -> np.ndarray:
@@ -215,6 +219,8 @@ def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator
                  "frames_outside": record.frames_outside, "downscale": record.downscale},
         "log": record.log,
     }
+    if run.appearance is not None:
+        state["appearance"] = run.appearance.state_dict()
     with atomic_outputs(force=True) as stage:  # the run's own checkpoint
         torch.save(state, stage(path))
 
@@ -258,6 +264,12 @@ def restore(run: Run, state: dict) -> None:
         run.field.set_output(output["kind"], output["channels"])
     run.field.load_state_dict(state["field"])
     run.occupancy.load_state_dict(state["occupancy"])
+    if run.appearance is not None:
+        try:
+            run.appearance.load_state_dict(state["appearance"])
+        except (KeyError, RuntimeError, TypeError, AttributeError):
+            raise InputError("the checkpoint holds no colour transforms of the training "
+                             "images as this run needs; start afresh with --force") from None
     saved = run_record(state)
     run.record.iteration, run.record.log = saved.iteration, saved.log
 

@@ -30,6 +30,7 @@ from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
 from palette_core.stack import WeightStack
 
+from .appearance import Appearance
 from .config import Strategy, TrainConfig
 from .data import Dataset, join_weights
 from .fields import RGB, make_field
@@ -148,11 +149,11 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
     """
     values, acc, samples = run.render_pixels(rays["origins"], rays["directions"], generator)
     if run.field.kind == RGB:
-        rgb = values + (1 - acc[:, None]) * background
+        rgb = _as_recorded(run, values + (1 - acc[:, None]) * background, rays)
         loss = torch.mean((rgb - rays["rgb"]) ** 2)
     else:
         loss = weight_loss(run.field.kind, values, rays["weights"])
-        rgb = values @ terms + (1 - acc[:, None]) * background
+        rgb = _as_recorded(run, values @ terms + (1 - acc[:, None]) * background, rays)
         if run.config.rgb_weight:
             loss = loss + run.config.rgb_weight * recorded_rgb_loss(rgb, rays["rgb"])
     if acc.requires_grad:
@@ -167,6 +168,12 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
     return loss, psnr_from_mse(max(mse, 1e-10))
 
 
+def _as_recorded(run: Run, rgb: torch.Tensor, rays: dict) -> torch.Tensor:
+    """(B, 3) composited colours as the rays' training images recorded them: through their
+    colour transforms when the run learns them (``appearance``), else as they are."""
+    return rgb if run.appearance is None else run.appearance(rgb, rays["image"])
+
+
 def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
     channels = n_terms(len(stack.palette), stack.basis, stack.order)
     kind = RGB if config.strategy != Strategy.TRADITIONAL else stack.basis
@@ -179,13 +186,15 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
     record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,
                        stack_meta=stack.meta, frames_outside=dataset.frames_outside,
                        downscale=dataset.downscale)
+    appearance = Appearance(len(train_ids)).to(device) if config.appearance else None
     return Run(config, field.to(device), occupancy.to(device), box, dataset.intrinsics,
-               np.asarray(stack.palette, np.float64), stack.basis, stack.order, record)
+               np.asarray(stack.palette, np.float64), stack.basis, stack.order, record,
+               appearance)
 
 
 def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
     """Every training pixel: (N, n^2, 3) origins and directions of its rays, (N, 3) rgb,
-    (N, M) weights, (N,) alpha."""
+    (N, M) weights, (N,) alpha, (N,) its image among the training images."""
     origins, directions = zip(*(normalised_rays(dataset.poses[i], dataset.camera(i), run.box,
                                                 device, run.config.supersampling)
                                 for i in train_ids))
@@ -195,7 +204,9 @@ def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
 
     return {"origins": torch.cat(origins), "directions": torch.cat(directions),
             "rgb": flat(dataset.images[train_ids]), "weights": flat(weights),
-            "alpha": flat(dataset.alpha[train_ids, ..., None])[:, 0]}
+            "alpha": flat(dataset.alpha[train_ids, ..., None])[:, 0],
+            "image": torch.arange(len(train_ids), device=device).repeat_interleave(
+                dataset.alpha[0].size)}
 
 
 def _pixel_batch(config: TrainConfig, rays: dict, generator: torch.Generator) -> torch.Tensor:
@@ -277,7 +288,8 @@ def _decay_learning_rates(optimisers: list, config: TrainConfig, it: int) -> Non
 
 def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
     """One Adam over the parameters being trained: voxel grids at the backbone's ``lr``,
-    networks at its ``network_lr`` (fused: one pass over each tensor per step)."""
+    networks and the images' colour transforms at its ``network_lr`` (fused: one pass over
+    each tensor per step)."""
     trained = [p for p in run.field.parameters() if p.requires_grad]
     grids = [p for p in run.field.grid_parameters() if p.requires_grad]
     networks = [p for p in trained if all(p is not g for g in grids)]
@@ -285,4 +297,6 @@ def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
     groups = [{"params": networks, "lr": backbone.network_lr}]
     if grids:
         groups.append({"params": grids, "lr": backbone.lr})
+    if run.appearance is not None:
+        groups.append({"params": list(run.appearance.parameters()), "lr": backbone.network_lr})
     return [torch.optim.Adam(groups, fused=True)]

@@ -12,6 +12,7 @@ from nerf_stage.cameras import focal_from_fov, look_at, rig_poses
 from nerf_stage.cli import main
 from nerf_stage.cli import main as nerf_stage
 from nerf_stage.simulation import (
+    BUILTIN_SCENES,
     load_scene,
     parse_scene,
     render_terms,
@@ -327,7 +328,7 @@ def test_malformed_scene_names_the_field(tmp_path, capsys, change, message):
 
 
 def test_unknown_scene_lists_builtins(tmp_path, capsys):
-    expect_error(main, ["simulate", "cornell", str(tmp_path / "o")], "cornell-box, still-life",
+    expect_error(main, ["simulate", "cornell", str(tmp_path / "o")], ", ".join(BUILTIN_SCENES),
                  capsys)
 
 
@@ -414,3 +415,17 @@ def test_scene_numbers_must_be_finite(tmp_path, capsys, path, value, message):
     (tmp_path / "s.json").write_text(json.dumps(scene))
     expect_error(nerf_stage, ["simulate", str(tmp_path / "s.json"), str(tmp_path / "o")],
                  message, capsys)
+
+
+@pytest.mark.parametrize("name", BUILTIN_SCENES)
+def test_every_builtin_scene_simulates_with_its_editable_materials_in_view(name):
+    """Each built-in scene simulates (two tiny views here); the editable ones show every
+    palette material in the transport weights of their views."""
+    scene = with_overrides(load_scene(name), spp=4, resolution=24, views=(2, 0, 0))
+    sim = simulate(scene, progress=False)
+    assert np.isfinite(sim.radiance).all() and sim.alpha.max() > 0
+    if scene.palette_materials:
+        terms = transport_terms(len(sim.palette), sim.order)
+        for k in range(len(sim.palette)):
+            uses = [i for i, combo in enumerate(terms) if k in combo]
+            assert sim.weights[..., uses].sum() > 0, scene.palette_materials[k].name

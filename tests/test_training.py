@@ -127,8 +127,9 @@ def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_p
     assert batch_loss() < 0.75 * fresh
 
 
-def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch):
-    config = tiny_config(pretrain_iters=3, finetune_iters=3)
+@pytest.mark.parametrize("appearance", [False, True])
+def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch, appearance):
+    config = tiny_config(pretrain_iters=3, finetune_iters=3, appearance=appearance)
     whole = trained(cornell, config, tmp_path / "whole")
     save = trainer_module.save_checkpoint
 
@@ -145,6 +146,28 @@ def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch):
     for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()):
         assert torch.equal(a, b)
     assert [e["loss"] for e in whole.record.log] == [e["loss"] for e in resumed.record.log]
+    saved = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=True)
+    assert ("appearance" in saved) == appearance
+    if appearance:
+        assert torch.equal(whole.appearance.affine, resumed.appearance.affine)
+        assert saved["appearance"]["affine"].shape[1:] == (3, 4)
+
+
+def test_colour_transforms_learn_each_images_exposure_around_the_average():
+    from nerf_stage.appearance import Appearance
+
+    torch.manual_seed(0)
+    gains = torch.tensor([0.7, 1.0, 1.3])  # their mean is the identity's
+    appearance = Appearance(3)
+    optimiser = torch.optim.Adam(appearance.parameters(), lr=0.01)
+    for _ in range(300):
+        rgb, image = torch.rand(256, 3), torch.randint(3, (256,))
+        loss = torch.mean((appearance(rgb, image) - gains[image, None] * rgb) ** 2)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    learnt = appearance(torch.eye(3).repeat(3, 1), torch.arange(3).repeat_interleave(3))
+    assert torch.allclose(learnt.view(3, 3, 3), gains[:, None, None] * torch.eye(3), atol=0.02)
 
 
 def test_a_run_with_other_optimisers_does_not_resume(cornell, tmp_path):

@@ -11,7 +11,7 @@ from nerf_stage.contraction import FAR, contract, ray_interval, ray_points  # no
 from nerf_stage.data import load_dataset  # noqa: E402
 from nerf_stage.fields.base import RaySampling  # noqa: E402
 from nerf_stage.occupancy import OccupancyGrid  # noqa: E402
-from nerf_stage.rendering import march_rays  # noqa: E402
+from nerf_stage.rendering import march_rays, scale_near_gradients  # noqa: E402
 from nerf_stage.run import load_run  # noqa: E402
 from nerf_stage.scene_box import scene_box  # noqa: E402
 
@@ -40,10 +40,40 @@ def test_marching_is_linear_in_the_box_then_in_disparity():
 
 
 class _Fog:
-    """A field of density 1 everywhere."""
+    """A field of density ``sigma`` everywhere; its features are the positions."""
+
+    def __init__(self, sigma=1.0):
+        self.sigma = sigma
 
     def density(self, x):
-        return torch.ones(len(x)), x
+        return torch.full((len(x),), self.sigma), x
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_rays_that_meet_nothing_end_in_the_sky_which_only_their_direction_places(grad):
+    grid = OccupancyGrid(torch.full((3,), 2.0), 16**3, contracted=True)
+    origins = torch.tensor([[0.9, 0.0, 0.0], [-0.5, 0.3, 0.2], [0.0, 0.0, 0.0]])
+    directions = torch.nn.functional.normalize(torch.tensor([[0.2, 1.0, 0.1]] * 3), dim=-1)
+    with torch.set_grad_enabled(grad):
+        samples = march_rays(_Fog(0.0), grid, origins, directions, RaySampling(step=0.05))
+    assert torch.equal(samples.opacity, torch.ones(3))
+    assert torch.all(samples.ray[1:] >= samples.ray[:-1])  # packed by ray, sky last
+    last = torch.tensor([int(torch.nonzero(samples.ray == r)[-1]) for r in range(3)])
+    assert torch.equal(samples.weight[last], torch.ones(3))
+    sky = samples.h[last]
+    assert torch.allclose(sky, sky[:1].expand(3, 3), atol=0.01)
+    assert torch.allclose(sky.abs().amax(-1), torch.full((3,), 2.0), atol=0.01)
+    dense = march_rays(_Fog(1e3), grid, origins, directions, RaySampling(step=0.05))
+    assert dense.h.abs().amax(-1).max() < 1.99  # no light left for the sky
+
+
+def test_near_gradients_are_scaled_by_the_squared_distance():
+    values = torch.ones(4, 2, requires_grad=True)
+    t = torch.tensor([0.0, 0.25, 0.5, 2.0])
+    scaled = scale_near_gradients(values, t, 0.5)
+    assert torch.equal(scaled, values)
+    scaled.sum().backward()
+    assert torch.allclose(values.grad[:, 0], torch.tensor([0.0, 0.25, 1.0, 1.0]))
 
 
 def test_a_contracted_grid_skips_empty_space_only_inside_the_box():
