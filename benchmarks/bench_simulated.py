@@ -63,15 +63,16 @@ def material_edits(run, dataset, stack) -> list[dict]:
     background = np.asarray(run.config.background, np.float64)
     render = WeightRender(values, opacity, names, run.palette, run.basis, run.order,
                           background, {})
-    alpha = dataset.alpha[dataset.indices("test")]
+    test = dataset.indices("test")
+    frames, alpha = [dataset.names[i] for i in test], dataset.alpha[test]
     before = render.recolor()
-    truth_before = truth_views(stack, names, alpha, run.palette, background)
+    truth_before = truth_views(stack, frames, alpha, run.palette, background)
     rows = []
     for k in range(len(run.palette)):
         edit = run.palette.copy()
         edit[k] = 1 - edit[k]
         response, seen = edit_response(before, render.recolor(edit), truth_before,
-                                       truth_views(stack, names, alpha, edit, background))
+                                       truth_views(stack, frames, alpha, edit, background))
         rows.append({"material": k, "response": response, "seen": seen})
     return rows
 
