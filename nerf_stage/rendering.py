@@ -156,7 +156,9 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     fallen below ``TERMINATION`` is not marched further (early ray termination), and
     stepped rays skip empty space again after each segment (past a floater to the
     surface behind it); with gradients, in one pass (each pass of a grid backbone
-    costs a backward over its whole grids).
+    costs a backward over its whole grids). With ``sampling.sky`` (an unbounded scene whose
+    training pixels are all opaque), each ray that light still reaches ends in an opaque
+    sample at infinity (``_sky_samples``).
 
     Parameters
     ----------
@@ -206,11 +208,11 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
             alive = alive[moved < far[alive]]
         if len(alive) == 0:
             break
-    if bend is not None:
+    if sampling.sky:
         parts.append(_sky_samples(field, origins, directions, far, bend, depth))
         depth = depth.masked_fill(depth.detach() < -math.log(TERMINATION), math.inf)
     ray, h, weight, transmittance, optical, t = (torch.cat(part) for part in zip(*parts))
-    if bend is not None:  # each ray's sky sample after its others
+    if sampling.sky:  # each ray's sky sample after its others
         order = torch.argsort(ray, stable=True)
         ray, h, weight, transmittance, optical, t = (
             x[order] for x in (ray, h, weight, transmittance, optical, t))

@@ -113,7 +113,7 @@ class Run:
     @property
     def sampling(self) -> RaySampling:
         """How training samples rays."""
-        return self.field.sampling()
+        return replace(self.field.sampling(), sky=self.box.sky)
 
     def dataset(self) -> Dataset:
         """The run's dataset, read as training read it."""
@@ -124,7 +124,7 @@ class Run:
     @property
     def render_sampling(self) -> RaySampling:
         """How renders sample rays (``GridConfig.render_step_voxels``)."""
-        return self.field.sampling(render=True)
+        return replace(self.field.sampling(render=True), sky=self.box.sky)
 
     def baked(self, factor: int = BAKE_FACTOR) -> Run:
         """This run with its field baked for fast rendering (``Field.baked``)."""
@@ -300,7 +300,8 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
                              f"basis has {channels}")
         box = SceneBox(np.array(state["box"]["centre"], np.float64),
                        np.array(state["box"]["half"], np.float64),
-                       state["box"].get("unbounded", False) is True)
+                       state["box"].get("unbounded", False) is True,
+                       state["box"].get("sky", False) is True)
         if (box.centre.shape != (3,) or box.half.shape != (3,) or not np.isfinite(box.centre).all()
                 or not (np.isfinite(box.half) & (box.half > 0)).all()):
             raise InputError(f"{path}: the scene box must be finite with positive extent")

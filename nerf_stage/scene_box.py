@@ -34,11 +34,15 @@ class SceneBox:
         World half sizes.
     unbounded : bool
         The scene goes on beyond the box (a cube then), contracted into a shell around it.
+    sky : bool
+        Rays of an unbounded scene end in an opaque sky at infinity (every training pixel is
+        opaque: ``rendering.march_rays``); else what they leave shows the background.
     """
 
     centre: np.ndarray
     half: np.ndarray
     unbounded: bool = False
+    sky: bool = False
 
     @property
     def scale(self) -> float:
@@ -57,7 +61,7 @@ class SceneBox:
 
     def to_dict(self) -> dict:
         return {"centre": self.centre.tolist(), "half": self.half.tolist(),
-                "unbounded": self.unbounded}
+                "unbounded": self.unbounded, "sky": self.sky}
 
 
 def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray,
@@ -77,8 +81,9 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     centre = np.linalg.lstsq(projector.sum(0), np.einsum("nij,nj->i", projector, eyes),
                              rcond=None)[0]
     half = 0.75 * np.linalg.norm(eyes - centre, axis=1).min()
-    unbounded = space == "unbounded" or (space == "auto" and bool(alpha.min() >= OPAQUE_ALPHA))
-    box = SceneBox(centre, np.full(3, half), unbounded)
+    opaque = bool(alpha.min() >= OPAQUE_ALPHA)
+    unbounded = space == "unbounded" or (space == "auto" and opaque)
+    box = SceneBox(centre, np.full(3, half), unbounded, unbounded and opaque)
     if unbounded or alpha.min() >= CARVE_ALPHA:
         return box
     cells = np.argwhere(visual_hull(box, np.full(3, resolution), poses, intrinsics, alpha))

@@ -55,7 +55,8 @@ def test_rays_that_meet_nothing_end_in_the_sky_which_only_their_direction_places
     origins = torch.tensor([[0.9, 0.0, 0.0], [-0.5, 0.3, 0.2], [0.0, 0.0, 0.0]])
     directions = torch.nn.functional.normalize(torch.tensor([[0.2, 1.0, 0.1]] * 3), dim=-1)
     with torch.set_grad_enabled(grad):
-        samples = march_rays(_Fog(0.0), grid, origins, directions, RaySampling(step=0.05))
+        samples = march_rays(_Fog(0.0), grid, origins, directions,
+                             RaySampling(step=0.05, sky=True))
     assert torch.equal(samples.opacity, torch.ones(3))
     assert torch.all(samples.ray[1:] >= samples.ray[:-1])  # packed by ray, sky last
     last = torch.tensor([int(torch.nonzero(samples.ray == r)[-1]) for r in range(3)])
@@ -63,8 +64,10 @@ def test_rays_that_meet_nothing_end_in_the_sky_which_only_their_direction_places
     sky = samples.h[last]
     assert torch.allclose(sky, sky[:1].expand(3, 3), atol=0.01)
     assert torch.allclose(sky.abs().amax(-1), torch.full((3,), 2.0), atol=0.01)
-    dense = march_rays(_Fog(1e3), grid, origins, directions, RaySampling(step=0.05))
+    dense = march_rays(_Fog(1e3), grid, origins, directions, RaySampling(step=0.05, sky=True))
     assert dense.h.abs().amax(-1).max() < 1.99  # no light left for the sky
+    open_sky = march_rays(_Fog(0.0), grid, origins, directions, RaySampling(step=0.05))
+    assert torch.equal(open_sky.opacity, torch.zeros(3))  # the background shows
 
 
 def test_near_gradients_are_scaled_by_the_squared_distance():
@@ -96,10 +99,11 @@ def test_opaque_images_make_an_unbounded_scene_and_transparent_ones_a_box(still_
     assert alpha.min() < 1
     assert not scene_box(poses, intrinsics, alpha).unbounded
     box = scene_box(poses, intrinsics, np.ones_like(alpha))
-    assert box.unbounded and np.allclose(box.half, box.half[0])
+    assert box.unbounded and box.sky and np.allclose(box.half, box.half[0])
     assert np.allclose(box.field_extent, 2)
     assert not scene_box(poses, intrinsics, np.ones_like(alpha), "box").unbounded
-    assert scene_box(poses, intrinsics, alpha, "unbounded").unbounded
+    forced = scene_box(poses, intrinsics, alpha, "unbounded")
+    assert forced.unbounded and not forced.sky  # transparent pixels show the background
     ring = rig_poses("orbit", 8, [0, 0, 0], 4.0, (10, 10), 360)
     assert scene_box(ring, intrinsics[:1] * 8, np.ones((8, 2, 2))).unbounded
 

@@ -8,7 +8,7 @@ and exposes the split that two-stage training needs:
 - ``head(h, d) -> (P, head_width)``: the colour part up to its last hidden layer;
   ``colour(h, d)`` adds the output layer and its activation: ``sigmoid`` for RGB,
   ``softmax`` for additive weights (they sum to one), ``softplus`` for transport
-  weights (non-negative).
+  weights (non-negative; its slope floored in training, ``FlooredSoftplus``).
 
 ``set_output(kind, channels)`` puts in a new output layer, as the paper's
 fine-tuning stage does; ``density_parameters`` and ``colour_parameters`` split the
@@ -31,11 +31,37 @@ from palette_core.errors import InputError
 #: Output kind of a field that predicts colours rather than weights.
 RGB = "rgb"
 
+#: The least slope that the transport weights' softplus passes back (``FlooredSoftplus``).
+SOFTPLUS_GRADIENT_FLOOR = 0.05
+
+
+class FlooredSoftplus(torch.autograd.Function):
+    """softplus(x), whose backward pass uses a slope of at least ``SOFTPLUS_GRADIENT_FLOOR``
+    (the clamped gradient of instant-NGP's truncated exponential, for the same reason).
+
+    Most pixels hold no weight of a small object's material, so its channel is driven to
+    large negative inputs, where softplus's slope sigmoid(x) vanishes: the few pixels that
+    want the material back can no longer lift it, and the object is rendered by the other
+    channels, an edit of its material moving nothing. With the floor a channel can always
+    come back; where it should stay at zero, its output, and so its gradient, is near zero.
+    """
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return nn.functional.softplus(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        return grad * torch.sigmoid(x).clamp(min=SOFTPLUS_GRADIENT_FLOOR)
+
+
 #: Activation of the output layer per output kind (RGB, or the weights' basis).
 ACTIVATIONS = {
     RGB: torch.sigmoid,
     Basis.ADDITIVE: lambda raw: torch.softmax(raw, dim=-1),
-    Basis.TRANSPORT: nn.functional.softplus,
+    Basis.TRANSPORT: FlooredSoftplus.apply,
 }
 
 
@@ -53,10 +79,12 @@ def inverse_tone_map(mapped: torch.Tensor) -> torch.Tensor:
 @dataclass(frozen=True)
 class RaySampling:
     """Samples ``step`` apart from where a ray enters the box (normalised units), or, when
-    ``step`` is None, ``count`` samples evenly across the box."""
+    ``step`` is None, ``count`` samples evenly across the box; with ``sky``, each ray of an
+    unbounded scene ends in an opaque sample at infinity (``rendering.march_rays``)."""
 
     step: float | None = None
     count: int | None = None
+    sky: bool = False
 
 
 def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
