@@ -26,7 +26,7 @@ from .data import Dataset, check_downscale, load_dataset
 from .fields import RGB, Field, RaySampling, make_field
 from .occupancy import OccupancyGrid
 from .rendering import render_rays
-from .scene_box import SceneBox, normalised_rays
+from .scene_box import SceneBox, box_from_dict, normalised_rays
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -298,13 +298,7 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
         if output["kind"] != RGB and output["channels"] != channels:
             raise InputError(f"{path}: the field outputs {output['channels']} channels, the "
                              f"basis has {channels}")
-        box = SceneBox(np.array(state["box"]["centre"], np.float64),
-                       np.array(state["box"]["half"], np.float64),
-                       state["box"].get("unbounded", False) is True,
-                       state["box"].get("sky", False) is True)
-        if (box.centre.shape != (3,) or box.half.shape != (3,) or not np.isfinite(box.centre).all()
-                or not (np.isfinite(box.half) & (box.half > 0)).all()):
-            raise InputError(f"{path}: the scene box must be finite with positive extent")
+        box = box_from_dict(state["box"], str(path))
         field = make_field(config, box, output["kind"], output["channels"])
         occupancy = OccupancyGrid.over(box, config.occupancy_voxels)
         run = Run(config, field, occupancy, box, intrinsics, palette, basis,

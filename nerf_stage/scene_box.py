@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from scipy.ndimage import maximum_filter
 
+from palette_core.errors import InputError
+
 from . import contraction
 from .cameras import Intrinsics, camera_rays
 
@@ -62,6 +64,26 @@ class SceneBox:
     def to_dict(self) -> dict:
         return {"centre": self.centre.tolist(), "half": self.half.tolist(),
                 "unbounded": self.unbounded, "sky": self.sky}
+
+
+def box_from_dict(data, source: str) -> SceneBox:
+    """The box of ``SceneBox.to_dict`` from a checkpoint named ``source``, checked.
+
+    Raises
+    ------
+    InputError
+        If it is not a finite box with positive extent.
+    """
+    try:
+        box = SceneBox(np.array(data["centre"], np.float64), np.array(data["half"], np.float64),
+                       data.get("unbounded", False) is True, data.get("sky", False) is True)
+    except (KeyError, TypeError, ValueError, AttributeError):
+        box = None
+    if (box is None or box.centre.shape != (3,) or box.half.shape != (3,)
+            or not np.isfinite(box.centre).all()
+            or not (np.isfinite(box.half) & (box.half > 0)).all()):
+        raise InputError(f"{source}: the scene box must be finite with positive extent")
+    return box
 
 
 def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray,

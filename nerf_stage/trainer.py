@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ from palette_core.errors import InputError
 from palette_core.stack import WeightStack
 
 from .appearance import Appearance
-from .config import Strategy, TrainConfig
+from .config import Space, Strategy, TrainConfig
 from .data import Dataset, join_weights
 from .fields import RGB, make_field
 from .losses import distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
@@ -49,7 +50,14 @@ from .run import (
     restore,
     save_checkpoint,
 )
-from .scene_box import normalised_rays, scene_box
+from .scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
+
+#: ``--space auto`` on images with transparent pixels (``_scene_box``): iterations of each
+#: space's probe, pixels it is scored on, and by how many dB the unbounded probe must beat
+#: the box's to be chosen.
+PROBE_ITERS = 150
+PROBE_PIXELS = 16384
+PROBE_MARGIN = 6.0
 
 
 def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
@@ -82,18 +90,17 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     train_ids = dataset.indices("train")
     if stack.basis == Basis.ADDITIVE:
         weights = weights * dataset.alpha[train_ids, ..., None]
-    box = scene_box(dataset.poses[train_ids], dataset.cameras(train_ids),
-                    dataset.alpha[train_ids], config.space)
+    state = read_checkpoint(rundir / CHECKPOINT) if resume else None
+    if resume and TrainConfig.from_dict(state["config"]) != config:
+        raise InputError(f"{rundir} was trained with another config; start afresh with --force")
+    box = (box_from_dict(state["box"], str(rundir / CHECKPOINT)) if resume else
+           _scene_box(config, dataset, stack, train_ids, weights, device, progress))
     run = _new_run(config, box, dataset, stack, train_ids, device)
     run.record.weights = weights_path
     rays = _ray_bank(run, dataset, train_ids, weights, device)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     optimiser_states = []
     if resume:
-        state = read_checkpoint(rundir / CHECKPOINT)
-        if TrainConfig.from_dict(state["config"]) != config:
-            raise InputError(f"{rundir} was trained with another config; "
-                             "start afresh with --force")
         if state["output"]["kind"] != run.field.kind:
             _start_finetune(run)
         restore(run, state)
@@ -116,20 +123,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             _start_finetune(run)
             _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
-        if run.field.refines_occupancy and not finetuning:
-            settings = run.field.settings
-            run.occupancy.update_every_n_steps(it, run.field, generator,
-                                               settings.occupancy_every, settings.warmup_iters)
-        _decay_learning_rates(optimisers, config, it)
-        batch = _pixel_batch(config, rays, generator)
-        run.field.train()
-        loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
-                           background, generator)
-        for optimiser in optimisers:
-            optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        for optimiser in optimisers:
-            optimiser.step()
+        loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning)
         log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
                     "loss": loss.item(), "psnr": psnr, "stage": str(run.field.kind)})
         run.record.iteration = it + 1
@@ -137,6 +131,69 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.total_iters:
             save_checkpoint(run, rundir / CHECKPOINT, optimisers, generator)
     return run
+
+
+def _step(run: Run, optimisers: list, rays: dict, terms, background, generator, it: int,
+          finetuning: bool) -> tuple[torch.Tensor, float]:
+    """Iteration ``it``: refine the occupancy grid (while the density trains), set the
+    learning rates, and take one optimiser step on a batch of pixels; its loss and PSNR."""
+    config = run.config
+    if run.field.refines_occupancy and not finetuning:
+        settings = run.field.settings
+        run.occupancy.update_every_n_steps(it, run.field, generator,
+                                           settings.occupancy_every, settings.warmup_iters)
+    _decay_learning_rates(optimisers, config, it)
+    batch = _pixel_batch(config, rays, generator)
+    run.field.train()
+    loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
+                       background, generator)
+    for optimiser in optimisers:
+        optimiser.zero_grad(set_to_none=True)
+    loss.backward()
+    for optimiser in optimisers:
+        optimiser.step()
+    return loss, psnr
+
+
+def _scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, train_ids,
+               weights, device, progress: bool) -> SceneBox:
+    """Where the scene ends (``scene_box.scene_box``): as ``config.space`` says, and for
+    ``auto`` on images with transparent pixels, the box unless a short RGB probe of
+    ``PROBE_ITERS`` iterations in each space fits the training pixels at least
+    ``PROBE_MARGIN`` dB better unbounded: a ground that runs on under an open sky has
+    transparent pixels too, and no box holds it (docs/nerf.md, "Choosing the space")."""
+    poses, cameras, alpha = (dataset.poses[train_ids], dataset.cameras(train_ids),
+                             dataset.alpha[train_ids])
+    box = scene_box(poses, cameras, alpha, config.space)
+    if config.space != Space.AUTO or box.unbounded:
+        return box
+    unbounded = scene_box(poses, cameras, alpha, Space.UNBOUNDED)
+    iters = min(PROBE_ITERS, config.total_iters)
+    probe = replace(config, strategy=Strategy.RGB, pretrain_iters=iters, finetune_iters=0,
+                    appearance=False)
+    fits = [_probe(probe, candidate, dataset, stack, train_ids, weights, device, progress)
+            for candidate in (box, unbounded)]
+    return unbounded if fits[1] >= fits[0] + PROBE_MARGIN else box
+
+
+def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weights, device,
+           progress: bool) -> float:
+    """PSNR on a fixed batch of training pixels of an RGB NeRF trained in ``box`` for
+    ``config``'s iterations."""
+    run = _new_run(config, box, dataset, stack, train_ids, device)
+    rays = _ray_bank(run, dataset, train_ids, weights, device)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
+    optimisers = _optimisers(run)
+    background = torch.as_tensor(config.background, dtype=torch.float32, device=device)
+    space = "unbounded" if box.unbounded else "box"
+    for it in tqdm(range(config.total_iters), desc=f"probe {space}", disable=not progress,
+                   unit="it"):
+        _step(run, optimisers, rays, None, background, generator, it, False)
+    pixels = torch.randperm(len(rays["rgb"]), generator=generator, device=device)[:PROBE_PIXELS]
+    with torch.no_grad():
+        run.field.eval()
+        return _loss(run, {key: value[pixels] for key, value in rays.items()}, None,
+                     background, None)[1]
 
 
 def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Tensor, float]:
@@ -246,7 +303,8 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
 
     def closure():
         fit.zero_grad()
-        values = samples.composite_colours(field.colour_output(features), field.deferred)
+        values = samples.composite_colours(field.colour_output(features, floored=False),
+                                           field.deferred)
         values = values.view(len(batch), pixel_rays, -1).mean(1)
         loss = weight_loss(field.kind, values, targets)
         loss.backward()

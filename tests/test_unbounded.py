@@ -136,3 +136,24 @@ def test_distortion_loss_is_the_pairwise_sum_and_prefers_compact_rays(rng):
     spread = torch.tensor([0.5, 0, 0, 0, 0, 0, 0, 0, 0, 0.5])
     assert distortion_loss(one, steps, compact, 0.1, 1) < distortion_loss(one, steps, spread,
                                                                            0.1, 1)
+
+
+@pytest.mark.parametrize("gain, unbounded", [(5.0, False), (7.0, True)])
+def test_auto_keeps_the_box_for_transparent_images_unless_a_probe_fits_far_better(
+        still_life, tmp_path, monkeypatch, gain, unbounded):
+    from nerf_stage import trainer
+
+    probed = []
+
+    def probe(config, box, *args):
+        probed.append((box.unbounded, config.strategy, config.total_iters))
+        return 20.0 + gain * box.unbounded
+
+    monkeypatch.setattr(trainer, "_probe", probe)
+    run = trained(still_life, tiny_config(), tmp_path / "run")
+    assert run.box.unbounded == unbounded and not run.box.sky
+    assert [p[0] for p in probed] == [False, True] and all(p[1:] == ("rgb", 4) for p in probed)
+    assert load_run(tmp_path / "run").box.unbounded == unbounded
+    probed.clear()
+    trained(still_life, tiny_config(space="box"), tmp_path / "box")
+    assert not probed  # a chosen space is not probed

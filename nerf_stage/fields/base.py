@@ -8,7 +8,7 @@ and exposes the split that two-stage training needs:
 - ``head(h, d) -> (P, head_width)``: the colour part up to its last hidden layer;
   ``colour(h, d)`` adds the output layer and its activation: ``sigmoid`` for RGB,
   ``softmax`` for additive weights (they sum to one), ``softplus`` for transport
-  weights (non-negative; its slope floored in training, ``FlooredSoftplus``).
+  weights (non-negative; its slope floored under Adam, ``FlooredSoftplus``).
 
 ``set_output(kind, channels)`` puts in a new output layer, as the paper's
 fine-tuning stage does; ``density_parameters`` and ``colour_parameters`` split the
@@ -61,7 +61,7 @@ class FlooredSoftplus(torch.autograd.Function):
 ACTIVATIONS = {
     RGB: torch.sigmoid,
     Basis.ADDITIVE: lambda raw: torch.softmax(raw, dim=-1),
-    Basis.TRANSPORT: FlooredSoftplus.apply,
+    Basis.TRANSPORT: nn.functional.softplus,
 }
 
 
@@ -163,9 +163,15 @@ class Field(nn.Module, ABC):
         """(P, C) outputs at the density part's ``h`` seen from unit directions ``d``."""
         return self.colour_output(self.head(h, d))
 
-    def colour_output(self, features: torch.Tensor) -> torch.Tensor:
-        """The output layer and its activation on (P, head_width) ``head`` features."""
-        return ACTIVATIONS[self.kind](self.output(features))
+    def colour_output(self, features: torch.Tensor, floored: bool = True) -> torch.Tensor:
+        """The output layer and its activation on (P, head_width) ``head`` features; the
+        transport weights' softplus passes back a floored slope unless not ``floored``
+        (``FlooredSoftplus``: for first-order training, not for a line search, which needs
+        the true gradient)."""
+        raw = self.output(features)
+        if self.kind == Basis.TRANSPORT and floored:
+            return FlooredSoftplus.apply(raw)
+        return ACTIVATIONS[self.kind](raw)
 
     def output_state(self) -> dict:
         """What ``set_output`` needs to rebuild the output layer: kind and channels."""
