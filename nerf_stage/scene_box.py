@@ -95,7 +95,7 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     contracts the rest of space around it; ``box`` ends the scene there and, when the
     images have transparent pixels, shrinks the box to the visual hull carved from them;
     ``auto`` is ``unbounded`` when every pixel is opaque (no view shows where the scene
-    ends), else ``box``.
+    ends), else ``box`` (training may still probe both: ``trainer._scene_box``).
     """
     axes = -poses[:, :3, 2]
     eyes = poses[:, :3, 3]
