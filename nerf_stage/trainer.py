@@ -303,8 +303,7 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
 
     def closure():
         fit.zero_grad()
-        values = samples.composite_colours(field.colour_output(features, floored=False),
-                                           field.deferred)
+        values = samples.composite_colours(field.colour_output(features), field.deferred)
         values = values.view(len(batch), pixel_rays, -1).mean(1)
         loss = weight_loss(field.kind, values, targets)
         loss.backward()

@@ -8,7 +8,7 @@ and exposes the split that two-stage training needs:
 - ``head(h, d) -> (P, head_width)``: the colour part up to its last hidden layer;
   ``colour(h, d)`` adds the output layer and its activation: ``sigmoid`` for RGB,
   ``softmax`` for additive weights (they sum to one), ``softplus`` for transport
-  weights (non-negative; its slope floored under Adam, ``FlooredSoftplus``).
+  weights (non-negative).
 
 ``set_output(kind, channels)`` puts in a new output layer, as the paper's
 fine-tuning stage does; ``density_parameters`` and ``colour_parameters`` split the
@@ -30,32 +30,6 @@ from palette_core.errors import InputError
 
 #: Output kind of a field that predicts colours rather than weights.
 RGB = "rgb"
-
-#: The least slope that the transport weights' softplus passes back (``FlooredSoftplus``).
-SOFTPLUS_GRADIENT_FLOOR = 0.05
-
-
-class FlooredSoftplus(torch.autograd.Function):
-    """softplus(x), whose backward pass uses a slope of at least ``SOFTPLUS_GRADIENT_FLOOR``
-    (the clamped gradient of instant-NGP's truncated exponential, for the same reason).
-
-    Most pixels hold no weight of a small object's material, so its channel is driven to
-    large negative inputs, where softplus's slope sigmoid(x) vanishes: the few pixels that
-    want the material back can no longer lift it, and the object is rendered by the other
-    channels, an edit of its material moving nothing. With the floor a channel can always
-    come back; where it should stay at zero, its output, and so its gradient, is near zero.
-    """
-
-    @staticmethod
-    def forward(ctx, x):
-        ctx.save_for_backward(x)
-        return nn.functional.softplus(x)
-
-    @staticmethod
-    def backward(ctx, grad):
-        (x,) = ctx.saved_tensors
-        return grad * torch.sigmoid(x).clamp(min=SOFTPLUS_GRADIENT_FLOOR)
-
 
 #: Activation of the output layer per output kind (RGB, or the weights' basis).
 ACTIVATIONS = {
@@ -163,15 +137,9 @@ class Field(nn.Module, ABC):
         """(P, C) outputs at the density part's ``h`` seen from unit directions ``d``."""
         return self.colour_output(self.head(h, d))
 
-    def colour_output(self, features: torch.Tensor, floored: bool = True) -> torch.Tensor:
-        """The output layer and its activation on (P, head_width) ``head`` features; the
-        transport weights' softplus passes back a floored slope unless not ``floored``
-        (``FlooredSoftplus``: for first-order training, not for a line search, which needs
-        the true gradient)."""
-        raw = self.output(features)
-        if self.kind == Basis.TRANSPORT and floored:
-            return FlooredSoftplus.apply(raw)
-        return ACTIVATIONS[self.kind](raw)
+    def colour_output(self, features: torch.Tensor) -> torch.Tensor:
+        """The output layer and its activation on (P, head_width) ``head`` features."""
+        return ACTIVATIONS[self.kind](self.output(features))
 
     def output_state(self) -> dict:
         """What ``set_output`` needs to rebuild the output layer: kind and channels."""
