@@ -33,10 +33,10 @@ from PIL import Image
 from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
 from nerf_stage.editing import WeightRender, render_poses
-from nerf_stage.evaluation import evaluate, resimulated_views, rolled_palette
+from nerf_stage.evaluation import composited, evaluate, rolled_palette
 from nerf_stage.metrics import edit_response
 from nerf_stage.run import CHECKPOINT, load_run
-from nerf_stage.simulation import BUILTIN_SCENES, SimulationRecord
+from nerf_stage.simulation import BUILTIN_SCENES
 from nerf_stage.trainer import train
 from palette_core.basis import Basis, weights_to_rgb
 from palette_core.stack import read_stack
@@ -49,30 +49,32 @@ def truth_views(stack, names, alpha, palette, background) -> np.ndarray:
     ``palette`` through their exact transport weights, composited like the dataset's PNGs."""
     weights = np.stack([np.asarray(stack.weights[stack.names.index(n)], np.float64)
                         for n in names])
-    radiance = weights_to_rgb(weights, palette, Basis.TRANSPORT, stack.order)
-    a = alpha[..., None]
-    straight = np.clip(radiance / np.maximum(a, 1e-12), 0, 1)
-    return straight * a + (1 - a) * background
+    return composited(weights_to_rgb(weights, palette, Basis.TRANSPORT, stack.order), alpha,
+                      background)
 
 
-def material_edits(run, dataset, stack) -> list[dict]:
-    """Per editable material: its colour inverted alone, the render's response to it
-    (``metrics.edit_response``) and the share of test pixels where it shows."""
+def test_render(run, dataset) -> WeightRender:
+    """The run's weights rendered at the dataset's test views."""
     names, poses, cameras = render_poses(run, dataset, "test", None)
     values, opacity = run.render(poses, False, cameras)
-    background = np.asarray(run.config.background, np.float64)
-    render = WeightRender(values, opacity, names, run.palette, run.basis, run.order,
-                          background, {})
+    return WeightRender(values, opacity, names, run.palette, run.basis, run.order,
+                        np.asarray(run.config.background, np.float64), {})
+
+
+def material_edits(render: WeightRender, dataset, stack) -> list[dict]:
+    """Per editable material: its colour inverted alone, the test ``render``'s response to it
+    (``metrics.edit_response``) and the share of test pixels where it shows."""
     test = dataset.indices("test")
     frames, alpha = [dataset.names[i] for i in test], dataset.alpha[test]
     before = render.recolor()
-    truth_before = truth_views(stack, frames, alpha, run.palette, background)
+    truth_before = truth_views(stack, frames, alpha, render.palette, render.background)
     rows = []
-    for k in range(len(run.palette)):
-        edit = run.palette.copy()
+    for k in range(len(render.palette)):
+        edit = render.palette.copy()
         edit[k] = 1 - edit[k]
-        response, seen = edit_response(before, render.recolor(edit), truth_before,
-                                       truth_views(stack, frames, alpha, edit, background))
+        response, seen = edit_response(
+            before, render.recolor(edit), truth_before,
+            truth_views(stack, frames, alpha, edit, render.background))
         rows.append({"material": k, "response": response, "seen": seen})
     return rows
 
@@ -106,7 +108,8 @@ def main() -> None:
         scores = evaluate(run, dataset, progress=False)
         scores["seconds"] = run.record.log[-1]["seconds"]
         scores["unbounded"] = run.box.unbounded
-        materials = material_edits(run, dataset, stack) if run.basis == Basis.TRANSPORT else []
+        render = test_render(run, dataset)
+        materials = material_edits(render, dataset, stack) if run.basis == Basis.TRANSPORT else []
         scores["materials"] = materials
         results[scene] = scores
         edit = scores.get("edit", {})
@@ -116,7 +119,7 @@ def main() -> None:
                      edit.get("psnr", float("nan")),
                      " ".join(f"{m['response']:.2f}" for m in materials) or "-",
                      ", ".join(map(str, lost)) or "none", scores["seconds"]])
-        pictures.append(_view_row(run, dataset))
+        pictures.append(_view_row(render, dataset, stack))
         print(f"{scene}: {rows[-1]}", flush=True)
     table(f"Built-in scenes at {'the default budget' if not iters else args.iters} "
           "(test views)",
@@ -126,19 +129,16 @@ def main() -> None:
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
 
 
-def _view_row(run, dataset) -> list:
+def _view_row(render: WeightRender, dataset, stack) -> list:
     """Truth and render of the first test view, then both with the global edit (the truth
-    re-simulated; a scene without editable materials shows its render recoloured only)."""
-    names, poses, cameras = render_poses(run, dataset, "test", None)
-    values, opacity = run.render(poses[:1], False, cameras[:1])
-    background = np.asarray(run.config.background, np.float64)
-    render = WeightRender(values, opacity, names[:1], run.palette, run.basis, run.order,
-                          background, {})
-    edit = rolled_palette(run.palette)
-    truth = dataset.images[dataset.indices("test")[0]]
-    simulation = SimulationRecord.from_meta(run.record.stack_meta)
-    edited_truth = (resimulated_views(simulation, edit, poses[:1], background)[0]
-                    if run.basis == Basis.TRANSPORT and simulation else truth)
+    from the simulator's weights; a scene without editable materials shows its render
+    recoloured only)."""
+    first = dataset.indices("test")[:1]
+    edit = rolled_palette(render.palette)
+    truth = dataset.images[first[0]]
+    edited_truth = (truth_views(stack, [dataset.names[first[0]]], dataset.alpha[first], edit,
+                                render.background)[0]
+                    if stack.basis == Basis.TRANSPORT else truth)
     return [truth, render.recolor()[0], edited_truth, render.recolor(edit)[0]]
 
 

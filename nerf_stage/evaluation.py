@@ -27,9 +27,15 @@ def resimulated_views(simulation: SimulationRecord, palette: np.ndarray, poses: 
 
     scene = simulation.applied_to(load_scene(simulation.scene))
     radiance, alpha = render_terms(with_palette(scene, palette), poses, split=False)
-    radiance = radiance[..., 0, :]
-    straight = np.clip(radiance / np.maximum(alpha[..., None], 1e-12), 0, 1)
-    return straight * alpha[..., None] + (1 - alpha[..., None]) * background
+    return composited(radiance[..., 0, :], alpha, background)
+
+
+def composited(radiance: np.ndarray, alpha: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """(N, H, W, 3) colours as a simulated dataset's PNGs show them, from radiance (N, H, W, 3)
+    premultiplied by alpha (N, H, W): the straight colour clipped to [0, 1], over
+    ``background``."""
+    a = alpha[..., None]
+    return np.clip(radiance / np.maximum(a, 1e-12), 0, 1) * a + (1 - a) * background
 
 
 def rolled_palette(palette: np.ndarray) -> np.ndarray:
@@ -72,4 +78,4 @@ def evaluate(run: Run, dataset, edit: np.ndarray | None = None,
     return scores
 
 
-__all__ = ["evaluate", "resimulated_views", "rolled_palette"]
+__all__ = ["composited", "evaluate", "resimulated_views", "rolled_palette"]
