@@ -1,4 +1,5 @@
-"""``nerf-stage``: simulate scenes; train weight NeRFs, render and recolour them, evaluate.
+"""``nerf-stage``: simulate scenes or pose photos; train weight NeRFs, render and recolour
+them, evaluate.
 
 The torch-based commands import torch only when they run, so ``simulate`` works
 without the ``nerf`` extra.
@@ -56,10 +57,34 @@ def build_parser(train_defaults: TrainConfig | None = None) -> ArgumentParser:
                           "transforms.json, for palette-decompose images/ and nerf-stage train)")
     sim.add_argument("--force", action="store_true", help="replace a non-empty OUTDIR")
     sim.set_defaults(run=_simulate)
+    _add_poses(commands)
     _add_train(commands, train_defaults or TrainConfig())
     _add_render(commands)
     _add_eval(commands)
     return parser
+
+
+def _add_poses(commands) -> None:
+    from .sfm import CAMERA_MODELS, MATCHERS
+
+    poses = commands.add_parser(
+        "poses", help="camera poses for a folder of photos (structure from motion, pycolmap)",
+        description="Estimate the cameras of a folder of photos with COLMAP's structure from "
+                    "motion (pycolmap, on the CPU), or convert the COLMAP model a folder "
+                    "already holds (sparse/0, text or binary, with its photos in images/). "
+                    "Writes a capture folder: images/ and transforms.json (nerfstudio "
+                    "layout), undistorted where the camera distorts.")
+    poses.add_argument("source", metavar="PHOTOS", help="folder of photos, or of a COLMAP model")
+    poses.add_argument("-o", "--output", required=True, metavar="CAPTURE",
+                       help="capture folder to write")
+    poses.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL",
+                       help="COLMAP camera model shared by the photos (default: SIMPLE_RADIAL; "
+                            "SIMPLE_PINHOLE for renders without distortion)")
+    poses.add_argument("--matcher", choices=MATCHERS, default="auto",
+                       help="pairs to match: every pair, or neighbours in name order (video "
+                            "frames); auto (default) matches every pair of up to 150 photos")
+    poses.add_argument("--force", action="store_true", help="replace a non-empty CAPTURE")
+    poses.set_defaults(run=_poses)
 
 
 def _add_train(commands, defaults: TrainConfig) -> None:
@@ -161,6 +186,28 @@ def _simulate(args) -> int:
         print(f"palette ({len(sim.palette)} editable materials, {sim.weights.shape[-1]} transport "
               f"terms): see {args.outdir}/materials.json")
     print(f"wrote {len(written)} files to {args.outdir}")
+    return 0
+
+
+def _poses(args) -> int:
+    from palette_core.outputs import check_apart
+
+    from .sfm import estimate_poses
+
+    check_apart([args.output], [args.source])
+    check_outdir(args.output, args.force)
+    report = estimate_poses(args.source, args.output, args.camera_model, args.matcher,
+                            args.force)
+    total = len(report.registered) + len(report.missing)
+    print(f"registered {len(report.registered)} of {total} photos: {report.points} points, "
+          f"mean reprojection error {report.reprojection_error:.2f} px"
+          + (", undistorted" if report.undistorted else "")
+          + "".join(f"; {phase} {s:.1f} s" for phase, s in report.seconds.items()))
+    if report.missing:
+        print(f"not registered (left out of the capture): {', '.join(report.missing)}")
+    print(f"wrote {args.output} (nerfstudio layout); next: palette-decompose "
+          f"{Path(args.output) / 'images'} -o {Path(args.output) / DEFAULT_STACK}, then "
+          f"{PROG} train {args.output}")
     return 0
 
 

@@ -1,6 +1,7 @@
-"""Multi-view datasets: Blender and nerfstudio ``transforms`` files, and weight stacks.
+"""Multi-view datasets: Blender and nerfstudio ``transforms`` files, COLMAP models, and
+weight stacks.
 
-Two layouts are read:
+Three layouts are read:
 
 - Blender synthetic scenes: ``transforms_{train,val,test}.json`` with
   ``camera_angle_x`` and ``frames[]`` (``file_path`` without or with suffix,
@@ -11,6 +12,9 @@ Two layouts are read:
   ``cx``, ``cy`` (pinhole cameras that differ per frame, of one image size); every
   eighth frame is held out for testing (the LLFF convention), there is no validation
   split.
+- COLMAP: a model (``sparse/0``, text or binary; ``colmap``) with its photos in ``images/``,
+  read as a nerfstudio capture of pinhole cameras in a normalised frame (every eighth
+  photo held out likewise); distorted cameras are undistorted by ``nerf-stage poses``.
 
 Images are read as RGBA and composited on a chosen background; ``downscale`` N averages
 each N x N block of pixels (premultiplied by alpha), for captures larger than the training
@@ -34,6 +38,7 @@ from palette_core.io import open_image
 from palette_core.stack import WeightStack
 
 from .cameras import Intrinsics, focal_length
+from .colmap import find_model, model_frames, read_model
 
 SPLITS = ("train", "val", "test")
 NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
@@ -61,7 +66,7 @@ class Dataset:
     alpha : (N, H, W) float32
     background : (3,) float64
     layout : str
-        ``blender`` or ``nerfstudio``: the files it was read from.
+        ``blender``, ``nerfstudio`` or ``colmap``: the files it was read from.
     frames_outside : bool
         Frames were allowed outside ``root`` (``load_dataset``).
     downscale : int
@@ -128,10 +133,20 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
         intrinsics = frame_intrinsics[0]
         if all(camera == intrinsics for camera in frame_intrinsics):
             frame_intrinsics = None
+    elif (model := find_model(root)) is not None:
+        layout = "colmap"
+        names, poses, frame_intrinsics = model_frames(read_model(model), str(root))
+        names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
+                 for name in names]
+        splits = _holdout(len(names))
+        intrinsics = frame_intrinsics[0]
+        if all(camera == intrinsics for camera in frame_intrinsics):
+            frame_intrinsics = None
     else:
-        raise InputError(f"{root} holds neither transforms_train.json (Blender layout) "
-                         "nor transforms.json (nerfstudio layout): make one with nerf-stage "
-                         "simulate SCENE DIR [--layout nerfstudio], or capture one")
+        raise InputError(f"{root} holds neither transforms_train.json (Blender layout), "
+                         "transforms.json (nerfstudio layout) nor a COLMAP model (sparse/0): "
+                         "make one with nerf-stage poses PHOTOS -o DIR or nerf-stage simulate "
+                         "SCENE DIR, or capture one")
     if min(intrinsics.width, intrinsics.height) < downscale:
         raise InputError(f"{root}: images of {intrinsics.width}x{intrinsics.height} cannot be "
                          f"downscaled {downscale} times")
@@ -265,13 +280,19 @@ def _frames(data: dict, path: Path, default_suffix: str,
             raise InputError(f"{where}: 'transform_matrix' must hold numbers") from None
         if not np.isfinite(pose).all():
             raise InputError(f"{where}: 'transform_matrix' holds NaN or infinity")
-        name = PurePosixPath(os.path.normpath(name))
-        if not frames_outside and (name.is_absolute() or name.parts[:1] == ("..",)):
-            raise InputError(f"{where}: file_path {frame['file_path']!r} lies outside "
-                             f"{path.parent} (--frames-outside reads it)")
-        names.append(name.as_posix())
+        names.append(_frame_path(name, where, path.parent, frames_outside))
         poses.append(np.vstack([pose[:3], [0.0, 0.0, 0.0, 1.0]]))
     return names, poses
+
+
+def _frame_path(name: str, where: str, root: Path, frames_outside: bool) -> str:
+    """A frame's image ``name`` normalised, InputError if it lies outside ``root`` (unless
+    ``frames_outside``): a file from elsewhere cannot make us read what it does not hold."""
+    path = PurePosixPath(os.path.normpath(name))
+    if not frames_outside and (path.is_absolute() or path.parts[:1] == ("..",)):
+        raise InputError(f"{where}: file_path {name!r} lies outside {root} "
+                         "(--frames-outside reads it)")
+    return path.as_posix()
 
 
 def _read_blender(root: Path, frames_outside: bool):
@@ -312,9 +333,13 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
     if len(sizes) > 1:
         listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
         raise InputError(f"{path}: frames of different image sizes ({listed}) are not supported")
-    splits = ["test" if i % NERFSTUDIO_HOLDOUT == NERFSTUDIO_HOLDOUT - 1 and len(names) > 1
-              else "train" for i in range(len(names))]
-    return names, splits, np.array(poses), cameras
+    return names, _holdout(len(names)), np.array(poses), cameras
+
+
+def _holdout(n: int) -> list[str]:
+    """Splits of n frames of a capture: every eighth a test view (one frame: training)."""
+    return ["test" if i % NERFSTUDIO_HOLDOUT == NERFSTUDIO_HOLDOUT - 1 and n > 1 else "train"
+            for i in range(n)]
 
 
 def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: int) -> np.ndarray:

@@ -1,0 +1,159 @@
+"""COLMAP models as captures: a pycolmap reconstruction's cameras and poses in our conventions.
+
+A COLMAP model (``cameras``, ``images``, ``points3D``, as ``.bin`` or ``.txt``) stores
+world-to-camera poses with the camera looking down +z, y down. A capture stores
+camera-to-world poses with OpenGL axes (``cameras``) in a normalised frame: centred on the
+cameras, the cameras' mean up vector turned to +y, the farthest camera at distance 1
+(nerfstudio's "poses" centring and "up" orientation). ``data`` reads a model's folder
+directly as a capture; ``sfm`` writes one as a nerfstudio folder. Distortion is not modelled
+by the renderer: a camera whose distortion moves a pixel by more than ``MAX_DISTORTION``
+must be undistorted first (``nerf-stage poses``). docs/capture.md.
+
+pycolmap is an optional dependency (``pip install 'palette-nerf-toolkit[poses]'``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from palette_core.errors import InputError
+
+from .cameras import Intrinsics
+
+#: Where a model may sit in a folder, in the order looked at (COLMAP's own layout first).
+MODEL_FOLDERS = ("sparse/0", "sparse", ".")
+#: Pixels that a camera's distortion may move an image corner before it must be undistorted.
+MAX_DISTORTION = 0.1
+#: COLMAP's camera axes to OpenGL's: x right, y down, z forward -> x right, y up, z back.
+_FLIP = np.diag([1.0, -1.0, -1.0])
+
+
+def import_pycolmap():
+    """The pycolmap module; InputError saying how to install it when it is missing."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise InputError("COLMAP models and structure from motion need pycolmap: "
+                         "pip install 'palette-nerf-toolkit[poses]'") from None
+    pycolmap.logging.minloglevel = 3  # fatal only: we show progress and errors ourselves
+    return pycolmap
+
+
+def find_model(folder: str | os.PathLike) -> Path | None:
+    """The folder of the COLMAP model in ``folder`` (``MODEL_FOLDERS``), or None."""
+    for name in MODEL_FOLDERS:
+        model = Path(folder) / name
+        if any((model / f"cameras.{ext}").is_file() and (model / f"images.{ext}").is_file()
+               for ext in ("bin", "txt")):
+            return model
+    return None
+
+
+def read_model(model: str | os.PathLike):
+    """The ``pycolmap.Reconstruction`` in folder ``model``, text or binary.
+
+    Raises
+    ------
+    InputError
+        If it cannot be read or registers no image.
+    """
+    pycolmap = import_pycolmap()
+    try:
+        reconstruction = pycolmap.Reconstruction(Path(model))
+    except Exception as exc:  # pycolmap raises its own C++ exceptions
+        raise InputError(f"cannot read the COLMAP model in {model}: {exc}".splitlines()[0]) \
+            from None
+    if reconstruction.num_reg_images() == 0:
+        raise InputError(f"the COLMAP model in {model} registers no image")
+    return reconstruction
+
+
+def distortion(camera) -> float:
+    """Most pixels by which ``camera``'s distortion moves a point on its image's border."""
+    if not camera.extra_params_idxs():
+        return 0.0
+    w, h = camera.width, camera.height
+    border = np.array([[x, y] for x in np.linspace(0, w, 9) for y in np.linspace(0, h, 9)
+                       if x in (0, w) or y in (0, h)], np.float64)
+    undistorted = camera.cam_from_img(border)  # normalised image coordinates, distortion removed
+    fx, fy = camera.focal_length_x, camera.focal_length_y
+    pinhole = undistorted * [fx, fy] + [camera.principal_point_x, camera.principal_point_y]
+    return float(np.abs(pinhole - border).max())
+
+
+def pinhole(camera, source: str) -> Intrinsics:
+    """``camera`` as a pinhole camera.
+
+    Raises
+    ------
+    InputError
+        If it is not a perspective camera, or its distortion moves a pixel by more than
+        ``MAX_DISTORTION`` (naming ``source`` and how to undistort).
+    """
+    if not camera.is_perspective():
+        raise InputError(f"{source}: camera model {camera.model_name} is not a perspective "
+                         "camera")
+    moved = distortion(camera)
+    if moved > MAX_DISTORTION:
+        raise InputError(f"{source}: camera model {camera.model_name} distorts the image by up "
+                         f"to {moved:.1f} pixels; undistort it with nerf-stage poses "
+                         f"{source} -o CAPTURE")
+    return Intrinsics(camera.width, camera.height, float(camera.focal_length_x),
+                      float(camera.focal_length_y), float(camera.principal_point_x),
+                      float(camera.principal_point_y))
+
+
+def model_frames(reconstruction, source: str):
+    """The registered images of ``reconstruction`` by name: (N,) names, (N, 4, 4)
+    camera-to-world poses (OpenGL axes, normalised frame: ``normalised``) and N
+    pinhole cameras (``pinhole``)."""
+    images = sorted(reconstruction.images.values(), key=lambda image: image.name)
+    images = [image for image in images if image.has_pose]
+    poses = []
+    for image in images:
+        world_to_camera = image.cam_from_world().matrix()  # (3, 4)
+        pose = np.eye(4)
+        pose[:3, :3] = world_to_camera[:, :3].T @ _FLIP
+        pose[:3, 3] = -world_to_camera[:, :3].T @ world_to_camera[:, 3]
+        poses.append(pose)
+    poses = np.array(poses)
+    cameras = [pinhole(image.camera, source) for image in images]
+    return [image.name for image in images], normalised(poses), cameras
+
+
+def normalised(poses: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) camera-to-world ``poses`` moved by the similarity that centres them on
+    their mean position, turns their mean up vector to +y and puts the farthest camera at
+    distance 1.
+
+    Examples
+    --------
+    >>> poses = np.tile(np.eye(4), (2, 1, 1)); poses[:, :3, 3] = [[2, 0, 0], [4, 0, 0]]
+    >>> normalised(poses)[:, :3, 3].tolist()
+    [[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
+    """
+    up = poses[:, :3, 1].mean(0)
+    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-9 else np.array([0.0, 1.0, 0.0])
+    rotation = _rotation_onto(up, np.array([0.0, 1.0, 0.0]))
+    centre = poses[:, :3, 3].mean(0)
+    radius = np.linalg.norm(poses[:, :3, 3] - centre, axis=1).max()
+    moved = poses.copy()
+    moved[:, :3, :3] = rotation @ poses[:, :3, :3]
+    moved[:, :3, 3] = (poses[:, :3, 3] - centre) @ rotation.T / (radius if radius > 1e-12 else 1)
+    return moved
+
+
+def _rotation_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking unit vector ``a`` onto unit vector ``b``."""
+    axis, cos = np.cross(a, b), float(a @ b)
+    if np.linalg.norm(axis) < 1e-12:
+        if cos > 0:
+            return np.eye(3)
+        perpendicular = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        perpendicular /= np.linalg.norm(perpendicular)
+        return 2 * np.outer(perpendicular, perpendicular) - np.eye(3)  # half a turn
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + cos)

@@ -1,0 +1,247 @@
+"""Camera poses for a folder of photos: structure from motion with pycolmap on the CPU.
+
+``estimate_poses`` runs COLMAP's phases, each with a progress bar: SIFT features (one
+camera for all photos, ``camera_model``), matching (every pair up to ``EXHAUSTIVE_UP_TO``
+photos, else each photo with its ``SEQUENTIAL_OVERLAP`` neighbours in name order and those
+at power-of-two offsets, as COLMAP's sequential matcher pairs video frames), incremental
+mapping, and undistortion where the camera's distortion moves a pixel by more than
+``colmap.MAX_DISTORTION``. A folder that already holds a COLMAP model is converted without
+running structure from motion. The capture is written in nerfstudio's layout (``images/``
+and ``transforms.json``, in the normalised frame of ``colmap.model_frames``), with the
+COLMAP model of its images in ``sparse/0``. docs/capture.md.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from palette_core.errors import InputError
+from palette_core.io import open_image
+from palette_core.outputs import publish_folder
+
+from .colmap import (
+    MAX_DISTORTION,
+    distortion,
+    find_model,
+    import_pycolmap,
+    model_frames,
+    read_model,
+)
+
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+MIN_PHOTOS = 3  # fewer cannot make a capture to train on
+MIN_REGISTERED = 0.5  # share of the photos that must register
+EXHAUSTIVE_UP_TO = 150  # photos matched pair by pair; more are matched sequentially
+SEQUENTIAL_OVERLAP = 15
+MATCHERS = ("auto", "exhaustive", "sequential")
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+_EXTRACT_CHUNK, _MATCH_CHUNK = 8, 256  # photos, pairs a call (a step of the progress bars)
+
+
+@dataclass
+class PosesReport:
+    """What ``estimate_poses`` did: the photos that registered and those that did not, the
+    model's mean reprojection error (pixels) and 3D points, whether the photos were
+    undistorted, and the seconds of each phase."""
+
+    registered: list[str]
+    missing: list[str]
+    reprojection_error: float
+    points: int
+    undistorted: bool
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def list_photos(folder: str | os.PathLike) -> list[str]:
+    """Names of the photos in ``folder`` (its files, hidden ones aside), sorted.
+
+    Raises
+    ------
+    InputError
+        If ``folder`` is not a folder, holds fewer than ``MIN_PHOTOS`` files, a file that
+        is not an image, or images of different sizes.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder of photos")
+    names = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    if len(names) < MIN_PHOTOS:
+        raise InputError(f"{folder} holds {len(names)} photo(s); structure from motion needs "
+                         f"at least {MIN_PHOTOS}")
+    sizes, strangers = {}, []
+    for name in names:
+        if not name.lower().endswith(PHOTO_SUFFIXES):
+            strangers.append(name)
+            continue
+        with open_image(folder / name) as image:  # InputError for what is not an image
+            sizes.setdefault(image.size, []).append(name)
+    if strangers:
+        raise InputError(f"{folder} holds files that are not photos ({', '.join(strangers[:3])}"
+                         f"{' ...' if len(strangers) > 3 else ''}): give a folder of photos only")
+    if len(sizes) > 1:
+        listed = ", ".join(f"{w}x{h} ({group[0]})" for (w, h), group in sorted(sizes.items()))
+        raise InputError(f"{folder} holds photos of different sizes: {listed}; one capture "
+                         "needs one size")
+    return names
+
+
+def image_pairs(names: list[str], matcher: str = "auto") -> list[tuple[str, str]]:
+    """The pairs of photos to match (``matcher``: see the module docstring).
+
+    Examples
+    --------
+    >>> len(image_pairs([f"{i}.png" for i in range(5)]))
+    10
+    >>> image_pairs([f"{i}.png" for i in range(40)], "sequential")[:2]
+    [('0.png', '1.png'), ('0.png', '2.png')]
+    """
+    if matcher == "exhaustive" or (matcher == "auto" and len(names) <= EXHAUSTIVE_UP_TO):
+        return list(itertools.combinations(names, 2))
+    offsets = sorted(set(range(1, SEQUENTIAL_OVERLAP + 1))
+                     | {2 ** k for k in range(len(names).bit_length())})
+    return [(names[i], names[i + d]) for i in range(len(names)) for d in offsets
+            if i + d < len(names)]
+
+
+def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
+                   camera_model: str = "SIMPLE_RADIAL", matcher: str = "auto",
+                   force: bool = False, progress: bool = True) -> PosesReport:
+    """Write the capture folder ``out`` for the photos in ``source``, or for the COLMAP model
+    that ``source`` holds (``colmap.find_model``; its photos in ``source/images``).
+
+    Raises
+    ------
+    InputError
+        Bad photos (``list_photos``), a model that cannot be read, fewer than
+        ``MIN_REGISTERED`` of the photos registered, or an ``out`` that is not empty
+        (without ``force``); nothing is written then.
+    """
+    if camera_model not in CAMERA_MODELS or matcher not in MATCHERS:
+        raise InputError(f"camera model must be one of {', '.join(CAMERA_MODELS)} and matcher "
+                         f"one of {', '.join(MATCHERS)}")
+    source, out = Path(source), Path(out)
+    pycolmap = import_pycolmap()
+    model = find_model(source)
+    photos = source / "images" if model is not None else source
+    names = list_photos(photos)
+    with tempfile.TemporaryDirectory(prefix="nerf-stage-poses-") as work:
+        work, seconds = Path(work), {}
+        if model is None:
+            model = _structure_from_motion(pycolmap, photos, names, work, camera_model,
+                                           matcher, progress, seconds)
+        reconstruction = read_model(model)
+        registered = sorted(image.name for image in reconstruction.images.values()
+                            if image.has_pose)
+        strangers = sorted(set(registered) - set(names))
+        if strangers:
+            raise InputError(f"the COLMAP model in {model} names images that are not photos "
+                             f"in {photos}: {', '.join(strangers[:3])}")
+        missing = sorted(set(names) - set(registered))
+        if len(registered) < max(MIN_PHOTOS, MIN_REGISTERED * len(names)):
+            raise InputError(f"only {len(registered)} of {len(names)} photos registered (at "
+                             f"least {max(MIN_PHOTOS, round(MIN_REGISTERED * len(names)))} "
+                             "needed): the photos may overlap too little or lack texture")
+        undistort = any(distortion(c) > MAX_DISTORTION for c in reconstruction.cameras.values())
+        report = PosesReport(registered, missing,
+                             float(reconstruction.compute_mean_reprojection_error()),
+                             reconstruction.num_points3D(), undistort, seconds)
+        with publish_folder(out, force) as staging:
+            images = staging / "images"
+            start = time.perf_counter()
+            if undistort:
+                model, photos = _undistort(pycolmap, model, photos, registered, work, progress)
+                reconstruction = read_model(model)
+            images.mkdir()
+            for name in tqdm(registered, desc="copy photos", unit="photo", disable=not progress):
+                shutil.copyfile(photos / name, images / name)
+            seconds["undistort and copy"] = time.perf_counter() - start
+            _write_transforms(staging / "transforms.json", reconstruction, str(source))
+            (staging / "sparse" / "0").mkdir(parents=True)
+            reconstruction.write(staging / "sparse" / "0")  # binary, for COLMAP's tools
+    return report
+
+
+def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
+                           camera_model: str, matcher: str, progress: bool,
+                           seconds: dict) -> Path:
+    """Run features, matching and mapping in ``work``; the folder of the largest model.
+
+    Raises
+    ------
+    InputError
+        If no model could be made.
+    """
+    database, cpu = work / "database.db", pycolmap.Device.cpu
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    start = time.perf_counter()
+    pycolmap.Database.open(database).close()  # created empty
+    pycolmap.import_images(database, photos, pycolmap.CameraMode.SINGLE, names, reader)
+    with tqdm(total=len(names), desc="features", unit="photo", disable=not progress) as bar:
+        for i in range(0, len(names), _EXTRACT_CHUNK):
+            chunk = names[i:i + _EXTRACT_CHUNK]
+            pycolmap.extract_features(database, photos, chunk, pycolmap.CameraMode.SINGLE,
+                                      reader, device=cpu)
+            bar.update(len(chunk))
+    seconds["features"] = time.perf_counter() - start
+    start, pairs = time.perf_counter(), image_pairs(names, matcher)
+    pairing, pair_file = pycolmap.ImportedPairingOptions(), work / "pairs.txt"
+    pairing.match_list_path = pair_file
+    with tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress) as bar:
+        for i in range(0, len(pairs), _MATCH_CHUNK):
+            chunk = pairs[i:i + _MATCH_CHUNK]
+            pair_file.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+            pycolmap.match_image_pairs(database, pairing_options=pairing, device=cpu)
+            bar.update(len(chunk))
+    seconds["matching"] = time.perf_counter() - start
+    start = time.perf_counter()
+    with tqdm(total=len(names), desc="mapping", unit="photo", disable=not progress) as bar:
+        models = pycolmap.incremental_mapping(database, photos, work / "sparse",
+                                              initial_image_pair_callback=lambda: bar.update(2),
+                                              next_image_callback=lambda: bar.update(1))
+        bar.n = max((m.num_reg_images() for m in models.values()), default=0)  # the kept one
+    seconds["mapping"] = time.perf_counter() - start
+    if not models:
+        raise InputError(f"structure from motion found no model for the {len(names)} photos in "
+                         f"{photos}: they may overlap too little or lack texture")
+    largest = max(models, key=lambda k: models[k].num_reg_images())
+    return work / "sparse" / str(largest)
+
+
+def _undistort(pycolmap, model: Path, photos: Path, names: list[str], work: Path,
+               progress: bool) -> tuple[Path, Path]:
+    """Undistort the registered photos into ``work``; the pinhole model and photo folders."""
+    target = work / "undistorted"
+    with tqdm(total=len(names), desc="undistort", unit="photo", disable=not progress) as bar:
+        for i in range(0, len(names), _EXTRACT_CHUNK):
+            chunk = names[i:i + _EXTRACT_CHUNK]
+            pycolmap.undistort_images(target, model, photos, chunk)
+            bar.update(len(chunk))
+    return target / "sparse", target / "images"
+
+
+def _write_transforms(path: Path, reconstruction, source: str) -> None:
+    """``transforms.json`` (nerfstudio layout, a camera per frame) of ``reconstruction``."""
+    names, poses, cameras = model_frames(reconstruction, source)
+    sizes = {(c.width, c.height) for c in cameras}
+    if len(sizes) > 1:
+        raise InputError(f"{source}: the model's cameras have different image sizes")
+    first = cameras[0]
+    frames = []
+    for name, pose, camera in zip(names, poses, cameras):
+        frame = {"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
+        if camera != first:
+            frame.update(fl_x=camera.fx, fl_y=camera.fy, cx=camera.cx, cy=camera.cy)
+        frames.append(frame)
+    path.write_text(json.dumps({
+        "camera_model": "PINHOLE", "w": first.width, "h": first.height, "fl_x": first.fx,
+        "fl_y": first.fy, "cx": first.cx, "cy": first.cy, "frames": frames}, indent=1))

@@ -1,0 +1,148 @@
+"""Structure from motion (``nerf-stage poses``) and COLMAP models read as captures."""
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy.ndimage import zoom
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from nerf_stage.cameras import Intrinsics, camera_rays, look_at  # noqa: E402
+from nerf_stage.cli import main as nerf_stage  # noqa: E402
+from nerf_stage.data import load_dataset  # noqa: E402
+from nerf_stage.metrics import pose_errors  # noqa: E402
+from palette_core.cli import decompose  # noqa: E402
+
+from .nerf_runs import TINY_FLAGS  # noqa: E402
+
+CAMERA = Intrinsics(160, 120, 140.0, 140.0, 80.0, 60.0)
+
+
+def _texture(rng, n=256) -> np.ndarray:
+    """(n, n, 3) noise of three scales, in [0, 1]: texture that SIFT finds features on."""
+    texture = sum(zoom(rng.random((s, s, 3)), (n / s, n / s, 1), order=1) / (i + 1)
+                  for i, s in enumerate((8, 32, 128)))
+    return (texture - texture.min()) / np.ptp(texture)
+
+
+def _render_corner(pose, textures) -> np.ndarray:
+    """(H, W, 3) uint8 view of a room corner (floor y = 0, walls z = -2 and x = -2, each
+    4 m square and textured) by ray casting."""
+    origins, directions = (a[:, :, 0] for a in camera_rays(pose, CAMERA))
+    nearest, rgb = np.full(origins.shape[:2], np.inf), np.zeros(origins.shape)
+    for axis, at, texture in zip((1, 2, 0), (0.0, -2.0, -2.0), textures):
+        d = directions[..., axis]
+        t = (at - origins[..., axis]) / np.where(np.abs(d) < 1e-9, 1e-9, d)
+        uv = np.delete(origins + t[..., None] * directions, axis, -1)
+        hit = (t > 0) & np.all(np.abs(uv) <= 2, -1) & (t < nearest)
+        texel = np.clip(((uv + 2) / 4 * (len(texture) - 1)).astype(int), 0, len(texture) - 1)
+        rgb[hit], nearest[hit] = texture[texel[hit, 0], texel[hit, 1]], t[hit]
+    return (rgb * 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def corner(tmp_path_factory):
+    """A folder of 10 photos of a textured room corner on a 50-degree arc, and their true
+    camera-to-world poses."""
+    folder = tmp_path_factory.mktemp("corner") / "photos"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    textures = [_texture(rng) for _ in range(3)]
+    poses = []
+    for i, angle in enumerate(np.radians(np.linspace(-25, 25, 10))):
+        eye = [3 * np.sin(angle), 1.5 + 0.2 * np.cos(3 * angle), 3 * np.cos(angle) - 1]
+        poses.append(look_at(eye, [-0.5, 0.5, -1.5]))
+        Image.fromarray(_render_corner(poses[-1], textures)).save(folder / f"v{i:02d}.png")
+    return folder, np.array(poses)
+
+
+@pytest.fixture(scope="module")
+def capture(corner, tmp_path_factory):
+    out = tmp_path_factory.mktemp("capture") / "capture"
+    assert nerf_stage(["poses", str(corner[0]), "-o", str(out)]) == 0
+    return out
+
+
+def test_photos_register_into_a_capture_folder(corner, capture):
+    frames = json.loads((capture / "transforms.json").read_text())["frames"]
+    assert len(frames) == 10 and (capture / "sparse" / "0" / "images.bin").is_file()
+    dataset = load_dataset(capture)
+    assert dataset.layout == "nerfstudio" and dataset.indices("test").tolist() == [7]
+    rotation, centre = pose_errors(dataset.poses, corner[1])
+    assert rotation.max() < 3.0 and centre.max() < 0.05  # degrees; the corner is 4 m wide
+    centres = dataset.poses[:, :3, 3]  # the normalised frame
+    assert np.allclose(centres.mean(0), 0, atol=1e-9)
+    assert np.isclose(np.linalg.norm(centres, axis=1).max(), 1.0)
+    assert dataset.poses[:, :3, 1].mean(0) @ [0, 1, 0] > 0.9  # the cameras' up is +y
+
+
+def test_text_and_binary_models_read_the_same(capture, tmp_path):
+    model = pycolmap.Reconstruction(capture / "sparse" / "0")
+    datasets = []
+    for kind in ("bin", "txt"):
+        project = tmp_path / kind
+        (project / "sparse" / "0").mkdir(parents=True)
+        (project / "images").symlink_to(capture / "images")
+        (model.write_binary if kind == "bin" else model.write_text)(project / "sparse" / "0")
+        datasets.append(load_dataset(project))
+    binary, text = datasets
+    assert binary.layout == text.layout == "colmap" and binary.names == text.names
+    assert np.allclose(binary.poses, text.poses, atol=1e-6)
+    assert binary.intrinsics == text.intrinsics
+    ours = load_dataset(capture)
+    assert np.allclose(binary.poses, ours.poses, atol=1e-6) and binary.names == ours.names
+
+
+def test_a_capture_trains(capture, tmp_path):
+    stack = tmp_path / "weights.npz"
+    assert decompose.main([str(capture / "images"), "-k", "4", "-o", str(stack)]) == 0
+    assert nerf_stage(["train", str(capture), "--weights", str(stack), "-o",
+                       str(tmp_path / "run"), *TINY_FLAGS]) == 0
+    assert (tmp_path / "run" / "checkpoint.pt").is_file()
+
+
+def test_a_model_whose_images_climb_out_is_refused(capture, tmp_path, capsys):
+    model = pycolmap.Reconstruction(capture / "sparse" / "0")
+    image = next(iter(model.images.values()))
+    image.name = "../../outside.png"
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    model.write_text(tmp_path / "sparse" / "0")
+    assert nerf_stage(["train", str(tmp_path), "-o", str(tmp_path / "run")]) == 2
+    assert "lies outside" in capsys.readouterr().err
+
+
+def _photos(folder, sizes, rng) -> None:
+    folder.mkdir()
+    for i, (w, h) in enumerate(sizes):
+        Image.fromarray(rng.integers(0, 255, (h, w, 3), np.uint8)).save(folder / f"{i}.png")
+
+
+@pytest.mark.parametrize("case, message", [
+    ("one photo", "needs at least 3"),
+    ("sizes", "different sizes"),
+    ("not photos", "not photos"),
+    ("noise", "overlap too little"),
+])
+def test_bad_photo_folders_are_one_line(case, message, tmp_path, capsys):
+    rng, photos = np.random.default_rng(1), tmp_path / "photos"
+    if case == "one photo":
+        _photos(photos, [(64, 48)], rng)
+    elif case == "sizes":
+        _photos(photos, [(64, 48), (64, 48), (48, 64)], rng)
+    elif case == "not photos":
+        _photos(photos, [(64, 48)] * 3, rng)
+        (photos / "notes.txt").write_text("not a photo")
+    else:  # unrelated noise: nothing matches
+        _photos(photos, [(96, 72)] * 4, rng)
+    out = tmp_path / "capture"
+    assert nerf_stage(["poses", str(photos), "-o", str(out)]) == 2
+    err = capsys.readouterr().err  # the progress bars of the phases that ran, then the line
+    assert message in err.strip().splitlines()[-1] and "Traceback" not in err
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["photos"]
+
+
+def test_a_capture_is_not_written_over(corner, capture, capsys):
+    assert nerf_stage(["poses", str(corner[0]), "-o", str(capture)]) == 2
+    assert "not empty" in capsys.readouterr().err
