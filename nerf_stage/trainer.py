@@ -58,6 +58,8 @@ from .scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 PROBE_ITERS = 150
 PROBE_PIXELS = 16384
 PROBE_MARGIN = 6.0
+#: ``_fit_output`` starts a channel at its mean weight, or at this where it is smaller.
+MIN_START_WEIGHT = 1e-4
 
 
 def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
@@ -288,8 +290,13 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     layer is fitted to the rays' weights (the training loss) by L-BFGS on that cache. This
     costs about one training step, and fine-tuning then starts near the RGB NeRF's
     batch PSNR instead of far below it (docs/nerf.md).
+
+    The layer starts at every channel's mean training weight (``Field.start_output``): from
+    a random start, the first steps pushed a rare channel so far below zero on every ray
+    that softplus left it no gradient, and the material it stands for was lost.
     """
     field = run.field
+    field.start_output(rays["weights"].mean(0).clamp(min=MIN_START_WEIGHT))
     batch = _pixel_batch(run.config, rays, generator)
     pixel_rays = rays["directions"].shape[1]
     directions = rays["directions"][batch].flatten(0, 1)

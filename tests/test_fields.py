@@ -34,6 +34,20 @@ def test_output_activations(make, kind, rng):
         assert torch.allclose(values.sum(-1), torch.ones(50), atol=1e-6)
 
 
+@pytest.mark.parametrize("kind", ["additive", "transport"])
+def test_a_new_output_layer_starts_at_the_mean_weights_everywhere(kind, rng):
+    """``trainer._fit_output`` starts here, so that a rare channel is neither dead nor
+    saturated before the fit: every point gives the given outputs (normalised, for
+    additive weights)."""
+    field = small_grid([1, 1, 1], 6**3, 4, 16, kind, 4)
+    mean = torch.tensor([0.5, 0.3, 1e-4, 0.2]) * (2.0 if kind == "transport" else 1.0)
+    field.start_output(mean)
+    _, h = field.density(torch.as_tensor(rng.uniform(-1, 1, (30, 3)), dtype=torch.float32))
+    values = field.colour(h, torch.nn.functional.normalize(torch.randn(30, 3), dim=-1))
+    want = mean / mean.sum() if kind == "additive" else mean
+    assert torch.allclose(values, want.expand(30, 4), rtol=1e-4, atol=1e-7)
+
+
 def test_grid_interpolation_has_the_gradient_of_a_weighted_gather(rng):
     field = small_grid([1, 1, 0.5], 5**3, 3, 8).double()
     table = field.feature_grid  # (C, N)

@@ -38,6 +38,13 @@ ACTIVATIONS = {
     Basis.TRANSPORT: nn.functional.softplus,
 }
 
+#: Inverse of each weight kind's activation, up to what the activation ignores (softmax
+#: ignores a shift): (M,) positive outputs -> inputs that give them.
+INVERSE_ACTIVATIONS = {
+    Basis.ADDITIVE: torch.log,
+    Basis.TRANSPORT: lambda out: out + torch.log(-torch.expm1(-out)),  # log(e^y - 1), stably
+}
+
 
 def tone_map(weights: torch.Tensor) -> torch.Tensor:
     """Transport weights w -> w / (1 + w) in [0, 1): emitters of radiance far above one
@@ -132,6 +139,14 @@ class Field(nn.Module, ABC):
         device = next(self.parameters()).device
         self._init_output(kind, channels)
         self.output.to(device)
+
+    def start_output(self, outputs: torch.Tensor) -> None:
+        """Start the output layer at the constant (M,) positive ``outputs``: zero weights and
+        the bias that the activation turns into them, so that no channel starts saturated
+        or dead (``trainer._fit_output``)."""
+        with torch.no_grad():
+            self.output.weight.zero_()
+            self.output.bias.copy_(INVERSE_ACTIVATIONS[self.kind](outputs))
 
     def colour(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """(P, C) outputs at the density part's ``h`` seen from unit directions ``d``."""
