@@ -43,12 +43,15 @@ SCENES = Path(__file__).parent / "scenes"
 SPLITS = ("val", "test")
 
 
-def render_scene(name: str, out: Path) -> Path:
-    scene = out / name
+def render_scene(name: str, out: Path, resolution: int = 100, spp: int = 64) -> Path:
+    """``OUT/NAME`` (``NAME-RESpx-SPPspp`` at other settings): the scene rendered once and
+    its training views decomposed."""
+    scene = out / (name if (resolution, spp) == (100, 64) else f"{name}-{resolution}px-{spp}spp")
     if not (scene / "transforms_test.json").exists():
         start = time.perf_counter()
         subprocess.run(["blender", "-b", "--factory-startup", "-P", str(SCENES / f"{name}.py"),
-                        "--", str(scene)], check=True, stdout=subprocess.DEVNULL)
+                        "--", str(scene), "--resolution", str(resolution), "--spp", str(spp)],
+                       check=True, stdout=subprocess.DEVNULL)
         print(f"{name}: rendered in {time.perf_counter() - start:.0f} s", flush=True)
     if not (scene / "weights.npz").exists():
         decompose([scene / "train"], k=6).write(scene / "weights.npz")

@@ -9,9 +9,10 @@ Three layouts are read:
   writes them.
 - nerfstudio: one ``transforms.json`` with ``fl_x``, ``fl_y``, ``cx``, ``cy``,
   ``w``, ``h`` and ``frames[]``, where a frame may carry its own ``fl_x``, ``fl_y``,
-  ``cx``, ``cy`` (pinhole cameras that differ per frame, of one image size); every
-  eighth frame is held out for testing (the LLFF convention), there is no validation
-  split.
+  ``cx``, ``cy`` (pinhole cameras that differ per frame, of one image size); splits come
+  from ``train_filenames``, ``val_filenames`` and ``test_filenames`` where the file lists
+  them, else every eighth frame is held out for testing (the LLFF convention) and there
+  is no validation split.
 - COLMAP: a model (``sparse/0``, text or binary; ``colmap``) with its photos in ``images/``,
   read as a nerfstudio capture of pinhole cameras in a normalised frame (every eighth
   photo held out likewise); distorted cameras are undistorted by ``nerf-stage poses``.
@@ -333,7 +334,29 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
     if len(sizes) > 1:
         listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
         raise InputError(f"{path}: frames of different image sizes ({listed}) are not supported")
-    return names, _holdout(len(names)), np.array(poses), cameras
+    return names, _nerfstudio_splits(data, names, path), np.array(poses), cameras
+
+
+def _nerfstudio_splits(data: dict, names: list[str], path: Path) -> list[str]:
+    """The split of each frame: from nerfstudio's ``train_filenames``, ``val_filenames`` and
+    ``test_filenames`` lists where the file has any (a frame in exactly one of them), else
+    every eighth frame held out (``_holdout``)."""
+    lists = {split: data[f"{split}_filenames"] for split in SPLITS
+             if f"{split}_filenames" in data}
+    if not lists:
+        return _holdout(len(names))
+    listed = {}
+    for split, files in lists.items():
+        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+            raise InputError(f"{path}: '{split}_filenames' must be a list of file paths")
+        for name in files:
+            name = PurePosixPath(os.path.normpath(name)).as_posix()
+            if listed.setdefault(name, split) != split:
+                raise InputError(f"{path}: {name} is listed in two splits")
+    unlisted = [name for name in names if name not in listed]
+    if unlisted:
+        raise InputError(f"{path}: frames in no split list: {_listing(unlisted)}")
+    return [listed[name] for name in names]
 
 
 def _holdout(n: int) -> list[str]:

@@ -63,6 +63,36 @@ def test_nerfstudio_layout(tmp_path):
     assert np.allclose(data.poses[0], POSE) and np.all(data.alpha == 1)
 
 
+def nerfstudio_folder(root, n=4, **fields):
+    frames = []
+    for i in range(n):
+        write_png(root / "images" / f"f{i}.png", np.full((4, 6, 3), 100))
+        frames.append({"file_path": f"images/f{i}.png", "transform_matrix": POSE})
+    (root / "transforms.json").write_text(json.dumps(
+        {"fl_x": 5.0, "fl_y": 5.0, "cx": 3, "cy": 2, "w": 6, "h": 4, "frames": frames,
+         **fields}))
+    return root
+
+
+def test_nerfstudio_split_lists(tmp_path):
+    lists = {"train_filenames": ["images/f0.png", "./images/f2.png"],
+             "val_filenames": ["images/f1.png"], "test_filenames": ["images/f3.png"]}
+    data = load_dataset(nerfstudio_folder(tmp_path, **lists))
+    assert data.splits == ["train", "val", "train", "test"]
+
+
+@pytest.mark.parametrize("lists, message", [
+    ({"train_filenames": ["images/f0.png", "images/f1.png"], "test_filenames": ["images/f2.png"]},
+     "in no split list: images/f3.png"),
+    ({"train_filenames": ["images/f0.png", "images/f1.png", "images/f2.png", "images/f3.png"],
+      "test_filenames": ["images/f3.png"]}, "listed in two splits"),
+    ({"train_filenames": "images/f0.png"}, "must be a list"),
+])
+def test_bad_nerfstudio_split_lists(tmp_path, lists, message):
+    with pytest.raises(InputError, match=message):
+        load_dataset(nerfstudio_folder(tmp_path, **lists))
+
+
 def test_nerfstudio_frames_may_carry_their_own_cameras(tmp_path):
     frames = []
     for i in range(3):
