@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_scenes import SPLITS, rendered, render_scene
+from bench_scenes import SPLITS, render_scene, rendered
 
 from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
@@ -36,6 +36,8 @@ from nerf_stage.metrics import image_scores, pose_errors
 from nerf_stage.run import load_run
 from nerf_stage.trainer import train
 from palette_core import decompose, read_stack
+
+SPLITS_ORDER = ("train", *SPLITS)
 
 
 def photo_folder(scene: Path, data, out: Path) -> Path:
@@ -64,13 +66,34 @@ def estimated_dataset(capture: Path):
     return load_dataset(capture), read_stack(capture / "weights.npz")
 
 
+def error_figure(order: np.ndarray, rotation: np.ndarray, centre: np.ndarray, path: Path):
+    """Rotation error (degrees) and centre error (share of the rig's size) per registered
+    photo, in capture order (training views around the ring, then the held-out ones)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sort = np.argsort(order)
+    figure, axes = plt.subplots(1, 2, figsize=(10, 3.2))
+    for ax, values, label in ((axes[0], rotation, "rotation error (degrees)"),
+                              (axes[1], 100 * centre, "centre error (% of the rig's size)")):
+        ax.plot(values[sort], ".-")
+        ax.set_xlabel("registered photo, in capture order")
+        ax.set_ylabel(label)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
 def trained_scores(label: str, config: TrainConfig, data, stack, out: Path) -> dict:
     run_dir = out / label
     if not (run_dir / "checkpoint.pt").exists():
         train(config, data, stack, run_dir, force=True)
     run = load_run(run_dir)
     scores = {split: image_scores(rendered(run, data, data.indices(split)),
-                                  data.images[data.indices(split)]) for split in SPLITS}
+                                  data.images[data.indices(split)])
+              for split in SPLITS if len(data.indices(split))}  # views that registered
     scores["seconds"] = run.record.log[-1]["seconds"]
     return scores
 
@@ -101,7 +124,8 @@ def main() -> None:
     rotation, centre = pose_errors(data.poses, truth.poses[matched])
     centres = truth.poses[matched, :3, 3]
     spread = np.linalg.norm(centres - centres.mean(0), axis=1).mean()
-    results = {"registered": len(data.names), "photos": len(truth.names),
+    missing = sorted(set(by_name) - {Path(name).name for name in data.names})
+    results = {"registered": len(data.names), "photos": len(truth.names), "missing": missing,
                "rotation_degrees": [float(np.median(rotation)), float(rotation.max())],
                "centre_error": [float(np.median(centre)), float(centre.max())],
                "centre_error_share": [float(np.median(centre) / spread),
@@ -110,7 +134,11 @@ def main() -> None:
           f"{np.median(rotation):.3f} deg, worst {rotation.max():.3f} deg; centre error median "
           f"{np.median(centre):.4f}, worst {centre.max():.4f} scene units "
           f"({100 * np.median(centre) / spread:.2f} % and {100 * centre.max() / spread:.2f} % "
-          "of the cameras' mean distance from their centroid)", flush=True)
+          "of the cameras' mean distance from their centroid)"
+          + (f"; not registered: {', '.join(missing)}" if missing else ""), flush=True)
+    error_figure(np.array([int(Path(n).stem.split("_")[-1]) + 1000 * SPLITS_ORDER.index(
+        Path(n).name.split("_")[0]) for n in data.names]), rotation, centre / spread,
+        args.out / f"{scene.name}-pose-errors.png")
     config = TrainConfig(**dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ())))
     truth_stack = read_stack(scene / "weights.npz")
     for label, dataset, weights in (("blender-poses", truth, truth_stack),
@@ -118,7 +146,8 @@ def main() -> None:
         scores = trained_scores(f"{scene.name}-{label}", config, dataset, weights, args.out)
         results[label] = scores
         print(f"{label}: " + ", ".join(f"{s} {scores[s]['psnr']:.2f} dB / SSIM "
-                                       f"{scores[s]['ssim']:.3f}" for s in SPLITS)
+                                       f"{scores[s]['ssim']:.3f}" if s in scores else
+                                       f"{s}: no view registered" for s in SPLITS)
               + f", trained in {scores['seconds']:.0f} s", flush=True)
     (args.out / f"{scene.name}-results.json").write_text(json.dumps(results, indent=1))
 

@@ -60,8 +60,8 @@ def test_the_card_says_what_is_missing(scene, capsys):
     expect_error(nerf_stage, ["train"], "weights.npz does not exist: make it with "
                  "palette-decompose images/", capsys)
     (scene / "transforms.json").unlink()
-    expect_error(nerf_stage, ["train"], "nor transforms.json (nerfstudio layout): make one with "
-                 "nerf-stage simulate", capsys)
+    expect_error(nerf_stage, ["train"], "nor a COLMAP model (sparse/0): make one with "
+                 "nerf-stage poses PHOTOS", capsys)
 
 
 def test_harmonize_says_which_stack_it_took(scene, capsys):

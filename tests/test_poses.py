@@ -65,6 +65,23 @@ def capture(corner, tmp_path_factory):
     return out
 
 
+def test_pose_errors_undo_a_similarity_and_see_what_it_cannot(rng):
+    truth = np.array([look_at(rng.normal(size=3) * 3, [0, 0, 0]) for _ in range(8)])
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    turn = np.eye(3) + np.sin(1.0) * k + (1 - np.cos(1.0)) * k @ k  # one radian about axis
+    moved = truth.copy()
+    moved[:, :3, :3] = turn @ truth[:, :3, :3]
+    moved[:, :3, 3] = 0.3 * truth[:, :3, 3] @ turn.T + [1, 2, 3]
+    rotation, centre = pose_errors(moved, truth)
+    assert rotation.max() < 1e-6 and centre.max() < 1e-9
+    moved[0, :3, :3] = moved[0, :3, :3] @ look_at([0, 0, 1], [0.1, 0, 0])[:3, :3]  # one camera
+    rotation, _ = pose_errors(moved, truth)
+    assert rotation[0] == pytest.approx(np.degrees(np.arctan(0.1)), abs=1e-6)
+    assert rotation[1:].max() < 1e-6
+
+
 def test_photos_register_into_a_capture_folder(corner, capture):
     frames = json.loads((capture / "transforms.json").read_text())["frames"]
     assert len(frames) == 10 and (capture / "sparse" / "0" / "images.bin").is_file()
