@@ -9,7 +9,7 @@ in scene units and as a share of the cameras' mean distance from their centroid)
 same config trains twice, on Blender's poses and on the estimated ones (the same splits,
 through nerfstudio's split lists; each decomposed from its own training images), and each
 run is scored on its own held-out views: on the training path (``val``) and off it
-(``test``).
+(``test``), beside the scene's noise floor.
 
     python benchmarks/bench_poses.py [--out benchmarks/out/poses] [--scene garden]
         [--resolution 256] [--spp 16] [--camera-model SIMPLE_RADIAL] [--iters P F]
@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_scenes import SPLITS, render_scene, rendered
+from bench_scenes import SPLITS, noise_floor, render_scene, rendered
 
 from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
@@ -139,6 +139,10 @@ def main() -> None:
     error_figure(np.array([int(Path(n).stem.split("_")[-1]) + 1000 * SPLITS_ORDER.index(
         Path(n).name.split("_")[0]) for n in data.names]), rotation, centre / spread,
         args.out / f"{scene.name}-pose-errors.png")
+    floor = {split: noise_floor(truth, split) for split in SPLITS}
+    results["floor"] = floor
+    print("noise floor (Blender's views under another sampler seed): "
+          + ", ".join(f"{s} {floor[s]['psnr']:.2f} dB" for s in SPLITS), flush=True)
     config = TrainConfig(**dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ())))
     truth_stack = read_stack(scene / "weights.npz")
     for label, dataset, weights in (("blender-poses", truth, truth_stack),

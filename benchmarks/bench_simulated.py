@@ -79,12 +79,18 @@ def material_edits(render: WeightRender, dataset, stack) -> list[dict]:
     return rows
 
 
-def figure(rows: list, path: Path) -> None:
-    """One test view a scene: truth, render, truth edited, render edited."""
-    picture = np.concatenate([np.concatenate(row, 1) for row in rows], 0)
-    picture = (np.clip(picture, 0, 1) * 255).round().astype(np.uint8)
-    Image.fromarray(picture).resize((picture.shape[1] * 2, picture.shape[0] * 2),
-                                    Image.NEAREST).save(path)
+def figure(rows: list, path: Path, height: int = 200) -> None:
+    """One test view a scene: truth, render, truth edited, render edited; each scene's row
+    scaled to ``height`` pixels (nearest), rows padded white to the widest."""
+    strips = []
+    for row in rows:
+        strip = Image.fromarray((np.clip(np.concatenate(row, 1), 0, 1) * 255).round()
+                                .astype(np.uint8))
+        width = round(strip.width * height / strip.height)
+        strips.append(np.asarray(strip.resize((width, height), Image.NEAREST)))
+    widest = max(strip.shape[1] for strip in strips)
+    Image.fromarray(np.concatenate([np.pad(strip, ((0, 0), (0, widest - strip.shape[1]), (0, 0)),
+                                           constant_values=255) for strip in strips])).save(path)
 
 
 def main() -> None:
@@ -125,8 +131,8 @@ def main() -> None:
           "(test views)",
           ["scene", "space", "PSNR", "SSIM", "edit PSNR", "edit response per material",
            f"lost (< {LOST})", "train s"], rows)
-    figure(pictures, args.out / "simulated.png")
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    figure(pictures, args.out / "simulated.png")
 
 
 def _view_row(render: WeightRender, dataset, stack) -> list:
