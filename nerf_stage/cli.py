@@ -190,12 +190,8 @@ def _simulate(args) -> int:
 
 
 def _poses(args) -> int:
-    from palette_core.outputs import check_apart
-
     from .sfm import estimate_poses
 
-    check_apart([args.output], [args.source])
-    check_outdir(args.output, args.force)
     report = estimate_poses(args.source, args.output, args.camera_model, args.matcher,
                             args.force)
     total = len(report.registered) + len(report.missing)

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from palette_core.errors import InputError
 from palette_core.io import open_image
-from palette_core.outputs import publish_folder
+from palette_core.outputs import check_apart, check_outdir, publish_folder
 
 from .colmap import (
     MAX_DISTORTION,
@@ -122,13 +122,15 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
     ------
     InputError
         Bad photos (``list_photos``), a model that cannot be read, fewer than
-        ``MIN_REGISTERED`` of the photos registered, or an ``out`` that is not empty
-        (without ``force``); nothing is written then.
+        ``MIN_REGISTERED`` of the photos registered, an ``out`` among the photos or not
+        empty (without ``force``); nothing is written then.
     """
     if camera_model not in CAMERA_MODELS or matcher not in MATCHERS:
         raise InputError(f"camera model must be one of {', '.join(CAMERA_MODELS)} and matcher "
                          f"one of {', '.join(MATCHERS)}")
     source, out = Path(source), Path(out)
+    check_apart([out], [source])
+    check_outdir(out, force)  # before minutes of work; publish_folder checks again at the end
     pycolmap = import_pycolmap()
     model = find_model(source)
     photos = source / "images" if model is not None else source

@@ -160,6 +160,9 @@ def test_bad_photo_folders_are_one_line(case, message, tmp_path, capsys):
     assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["photos"]
 
 
-def test_a_capture_is_not_written_over(corner, capture, capsys):
+def test_a_capture_is_not_written_over_nor_among_the_photos(corner, capture, capsys):
     assert nerf_stage(["poses", str(corner[0]), "-o", str(capture)]) == 2
     assert "not empty" in capsys.readouterr().err
+    assert nerf_stage(["poses", str(corner[0]), "-o", str(corner[0] / "capture")]) == 2
+    assert "among the inputs" in capsys.readouterr().err
+    assert not (corner[0] / "capture").exists()
