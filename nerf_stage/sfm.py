@@ -25,7 +25,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from palette_core.errors import InputError
-from palette_core.io import open_image
+from palette_core.io import IMAGE_SUFFIXES, open_image
 from palette_core.outputs import check_apart, check_outdir, publish_folder
 
 from .colmap import (
@@ -37,7 +37,6 @@ from .colmap import (
     read_model,
 )
 
-PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 MIN_PHOTOS = 3  # fewer cannot make a capture to train on
 MIN_REGISTERED = 0.5  # share of the photos that must register
 EXHAUSTIVE_UP_TO = 150  # photos matched pair by pair; more are matched sequentially
@@ -79,7 +78,7 @@ def list_photos(folder: str | os.PathLike) -> list[str]:
                          f"at least {MIN_PHOTOS}")
     sizes, strangers = {}, []
     for name in names:
-        if not name.lower().endswith(PHOTO_SUFFIXES):
+        if not name.lower().endswith(IMAGE_SUFFIXES):
             strangers.append(name)
             continue
         with open_image(folder / name) as image:  # InputError for what is not an image

@@ -11,12 +11,15 @@ import numpy as np
 from .basis import weights_to_rgb
 from .errors import InputError
 from .outputs import atomic_outputs, check_writable, inside, save_image
+from .selection import Selection, recolor_selected
 from .stack import WeightStack, video_of
 
 
 def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.PathLike,
-                  force: bool = False, frames: bool = False) -> list[Path]:
-    """Write every image of ``stack`` recoloured with ``palette`` (K, 3) under its own name.
+                  force: bool = False, frames: bool = False,
+                  selection: Selection | None = None) -> list[Path]:
+    """Write every image of ``stack`` recoloured with ``palette`` (K, 3) under its own name,
+    or, with a ``selection``, recoloured inside it only (``selection.recolor_selected``).
 
     The frames of a video (names ``clip.mp4#000123``, ``stack.meta["videos"]`` giving
     its frame rate) become ``folder/clip.mp4`` at the source frame rate, or, with
@@ -31,7 +34,9 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     Raises
     ------
     InputError
-        If an output exists (without ``force``) or the folder cannot be written.
+        If an output exists (without ``force``), the folder cannot be written, or the
+        selection does not fit the stack (a mask of another size, a missing mask, a
+        palette colour the stack does not have).
     """
     videos = {} if frames else stack.meta.get("videos", {})
     targets = [inside(folder, video) for video in videos]
@@ -42,8 +47,15 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     for path in targets[:len(videos)]:
         video_codec(path)  # before anything is written
 
+    if selection is not None:
+        selection.check(len(stack.palette))
+
     def recoloured(i: int) -> np.ndarray:
-        return weights_to_rgb(stack.weights[i], palette, stack.basis, stack.order)
+        weights = np.asarray(stack.weights[i])
+        if selection is None:
+            return weights_to_rgb(weights, palette, stack.basis, stack.order)
+        return recolor_selected(weights, np.asarray(stack.palette), palette, selection,
+                                stack.names[i], stack.basis, stack.order)
 
     with atomic_outputs(force) as stage:
         for video, path in zip(videos, targets):

@@ -1,0 +1,81 @@
+"""Local edits in photos: the time of a selection recolour of one megapixel, in the library.
+
+A photo is decomposed (``palette-decompose -k 6``), its weights resized to 1000 x 1000
+(bilinear, so the recolour sees the photo's weights at one megapixel) and recoloured with
+every palette colour inverted: everywhere (``basis.weights_to_rgb``), and inside a hard
+mask, a feathered mask, a palette-colour selection and a near-colour selection
+(``selection.recolor_selected``). Best of ``--repeats`` runs each; the selection's own
+values are part of the time. Also checks that outside a hard mask the recolour equals
+the unedited reconstruction exactly.
+
+    python benchmarks/bench_selection.py [--photo examples/photos/coffee.jpg] [--repeats 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from scipy.ndimage import zoom
+
+from palette_core import decompose
+from palette_core.basis import weights_to_rgb
+from palette_core.selection import Selection, recolor_selected
+
+SIZE = 1000
+
+
+def best_seconds(function, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--photo", type=Path, default=Path("examples/photos/coffee.jpg"))
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    result = decompose([args.photo], k=6)
+    stack_weights = np.asarray(result.stack.weights[0], np.float64)
+    h, w = stack_weights.shape[:2]
+    weights = zoom(stack_weights, (SIZE / h, SIZE / w, 1), order=1)
+    weights /= weights.sum(-1, keepdims=True)
+    palette = np.asarray(result.stack.palette, np.float64)
+    edited = 1 - palette
+    original = weights_to_rgb(weights, palette)
+    with tempfile.TemporaryDirectory() as folder:
+        inside = np.zeros((SIZE, SIZE), np.uint8)
+        inside[250:750, 250:750] = 255
+        mask = Path(folder) / "mask.png"
+        Image.fromarray(inside).save(mask)
+        selections = {
+            "hard mask (500 x 500 square)": Selection(mask=mask),
+            "feathered mask (8 pixels)": Selection(mask=mask, feather=8.0),
+            "palette colour 0 (weight >= 0.5)": Selection(colour=0),
+            "near a colour (0.1)": Selection(near=tuple(original[500, 500]), distance=0.1),
+        }
+        hard = recolor_selected(weights, palette, edited, next(iter(selections.values())),
+                                "photo", result.stack.basis)
+        outside = inside == 0
+        exact = np.array_equal(hard[outside], original[outside])
+        print(f"{args.photo.name} at {SIZE} x {SIZE} ({weights.shape[-1]} weights a pixel); "
+              f"outside the hard mask equal to the unedited reconstruction: {exact}")
+        print(f"| recolour | best of {args.repeats} (ms) |\n|---|---|")
+        everywhere = best_seconds(lambda: weights_to_rgb(weights, edited), args.repeats)
+        print(f"| everywhere (weights_to_rgb) | {1000 * everywhere:.1f} |")
+        for label, selection in selections.items():
+            seconds = best_seconds(lambda s=selection: recolor_selected(
+                weights, palette, edited, s, "photo", result.stack.basis), args.repeats)
+            print(f"| {label} | {1000 * seconds:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,129 @@
+"""Local edits: an edited palette that applies inside a soft selection of each image only.
+
+Recolouring is linear in the weights, so splitting each pixel's weights w by its selection
+value m in [0, 1] and giving each part its own palette is exact, with no retraining and no
+leak (docs/selections.md):
+
+    rgb = (m w) @ B(P_edit) + ((1 - m) w) @ B(P_orig) = rgb_orig + m w @ (B(P_edit) - B(P_orig))
+
+where B is the basis (``basis.basis_terms``). Where m = 0 a pixel is exactly its
+unedited reconstruction, and only the selected pixels cost more than it. A selection is one of:
+
+- ``mask``: an image whose grey value (or alpha, when it has one) is m, one file for every
+  image of the stack, or a folder with one per image named like it (any image suffix);
+- ``colour``: the pixels whose weight for palette colour k (its first-order term, for
+  transport weights) is at least ``threshold`` ("only this red");
+- ``near``: the pixels whose unedited colour lies within ``distance`` of a colour (RGB in
+  [0, 1], Euclidean).
+
+``feather`` softens the selection's edge by a Gaussian of that many pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from .basis import Basis, basis_terms, weights_to_rgb
+from .errors import InputError
+from .io import IMAGE_SUFFIXES, open_image
+from .stack import video_of
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Where an edit applies: exactly one of ``mask``, ``colour`` and ``near``."""
+
+    mask: Path | None = None
+    colour: int | None = None
+    near: tuple[float, float, float] | None = None
+    threshold: float = 0.5
+    distance: float = 0.1
+    feather: float = 0.0
+
+    def __post_init__(self):
+        if sum(x is not None for x in (self.mask, self.colour, self.near)) != 1:
+            raise InputError("a selection is a mask, a palette colour or a colour to be near: "
+                             "give exactly one")
+        numbers = (self.threshold, self.distance, self.feather, *(self.near or ()))
+        if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in numbers):
+            raise InputError("selection threshold, distance, feather and colour must be finite")
+        if self.feather < 0 or self.distance < 0:
+            raise InputError("selection feather and distance cannot be negative")
+        if self.mask is not None and not Path(self.mask).exists():
+            raise InputError(f"mask {self.mask} does not exist")
+
+    def check(self, k: int) -> None:
+        """InputError unless the selection fits a stack of ``k`` palette colours."""
+        if self.colour is not None and not 0 <= self.colour < k:
+            raise InputError(f"selected palette colour {self.colour} is not one of the "
+                             f"stack's {k} (0 to {k - 1})")
+
+    def values(self, name: str, weights: np.ndarray, rgb: np.ndarray,
+               basis: Basis = Basis.ADDITIVE) -> np.ndarray:
+        """(H, W) float64 m in [0, 1] for stack image ``name`` with (H, W, M) ``weights``
+        in ``basis`` and its unedited (H, W, 3) ``rgb``.
+
+        Raises
+        ------
+        InputError
+            If the image has no mask in a mask folder, or its mask is not its size.
+        """
+        if self.mask is not None:
+            m = _read_mask(self._mask_file(name), weights.shape[:2], name)
+        elif self.colour is not None:
+            channel = self.colour + (basis == Basis.TRANSPORT)  # after the constant term
+            m = (weights[..., channel] >= self.threshold).astype(np.float64)
+        else:
+            m = (np.linalg.norm(rgb - np.asarray(self.near), axis=-1) <= self.distance
+                 ).astype(np.float64)
+        if self.feather:
+            m = np.clip(gaussian_filter(m, self.feather), 0.0, 1.0)
+        return m
+
+    def _mask_file(self, name: str) -> Path:
+        mask = Path(self.mask)
+        if mask.is_file():
+            return mask
+        stem = name if video_of(name) else str(PurePosixPath(name).with_suffix(""))
+        for suffix in IMAGE_SUFFIXES:
+            candidate = mask / (stem + suffix)
+            if candidate.is_file():
+                return candidate
+        raise InputError(f"no mask for image {name} in {mask} (expected {stem}.png)")
+
+
+def recolor_selected(weights: np.ndarray, palette: np.ndarray, edited: np.ndarray,
+                     selection: Selection, name: str, basis, order: int = 1) -> np.ndarray:
+    """(H, W, 3) stack image ``name`` (its (H, W, M) ``weights``) recoloured with ``edited``
+    inside ``selection`` and with its own ``palette`` outside (module docstring)."""
+    original = weights_to_rgb(weights, palette, basis, order)
+    m = selection.values(name, weights, original, basis)
+    at = m > 0  # only the selected pixels pay for the edit; the others stay as they are
+    change = basis_terms(edited, basis, order) - basis_terms(palette, basis, order)
+    recoloured = original.copy()
+    recoloured[at] += m[at, None] * (weights[at] @ change)
+    return recoloured
+
+
+def _read_mask(path: Path, size: tuple[int, int], name: str) -> np.ndarray:
+    """(H, W) float64 in [0, 1]: the alpha of a mask that has one, else its grey value."""
+    with open_image(path) as image:
+        if (image.height, image.width) != size:
+            raise InputError(f"mask {path} is {image.width}x{image.height}, image {name} is "
+                             f"{size[1]}x{size[0]}")
+        channel = image.getchannel("A") if "A" in image.getbands() else image.convert("L")
+        return np.asarray(channel, np.float64) / 255.0
+
+
+def parse_near(text: str) -> tuple[float, float, float]:
+    """``#rrggbb`` -> (3,) RGB in [0, 1]; InputError otherwise."""
+    digits = text.lstrip("#")
+    if len(digits) != 6 or any(c not in "0123456789abcdefABCDEF" for c in digits):
+        raise InputError(f"colour to select near must be #rrggbb, got {text!r}")
+    return tuple(int(digits[i:i + 2], 16) / 255.0 for i in (0, 2, 4))
+
