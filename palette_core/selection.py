@@ -7,7 +7,7 @@ leak (docs/selections.md):
     rgb = (m w) @ B(P_edit) + ((1 - m) w) @ B(P_orig) = rgb_orig + m w @ (B(P_edit) - B(P_orig))
 
 where B is the basis (``basis.basis_terms``). Where m = 0 a pixel is exactly its
-unedited reconstruction, and only the selected pixels cost more than it. A selection is one of:
+unedited reconstruction. A selection is one of:
 
 - ``mask``: an image whose grey value (or alpha, when it has one) is m, one file for every
   image of the stack, or a folder with one per image named like it (any image suffix);
@@ -79,11 +79,10 @@ class Selection:
             channel = self.colour + (basis == Basis.TRANSPORT)  # after the constant term
             m = (weights[..., channel] >= self.threshold).astype(np.float64)
         else:
-            m = (np.linalg.norm(rgb - np.asarray(self.near), axis=-1) <= self.distance
+            offset = rgb - np.asarray(self.near)
+            m = (np.einsum("...c,...c->...", offset, offset) <= self.distance ** 2
                  ).astype(np.float64)
-        if self.feather:
-            m = np.clip(gaussian_filter(m, self.feather), 0.0, 1.0)
-        return m
+        return _feathered(m, self.feather) if self.feather else m
 
     def _mask_file(self, name: str) -> Path:
         mask = Path(self.mask)
@@ -103,11 +102,25 @@ def recolor_selected(weights: np.ndarray, palette: np.ndarray, edited: np.ndarra
     inside ``selection`` and with its own ``palette`` outside (module docstring)."""
     original = weights_to_rgb(weights, palette, basis, order)
     m = selection.values(name, weights, original, basis)
-    at = m > 0  # only the selected pixels pay for the edit; the others stay as they are
     change = basis_terms(edited, basis, order) - basis_terms(palette, basis, order)
-    recoloured = original.copy()
-    recoloured[at] += m[at, None] * (weights[at] @ change)
+    recoloured = weights @ change
+    recoloured *= m[..., None]
+    recoloured += original  # adds 0 (or -0) where m = 0: exactly the original there
     return recoloured
+
+
+def _feathered(m: np.ndarray, sigma: float) -> np.ndarray:
+    """(H, W) ``m`` blurred by a Gaussian of ``sigma`` pixels (reflected at the image's
+    border, cut at 4 sigma), computed only around the selected pixels, where it is not 0."""
+    rows, columns = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+    if not len(rows):
+        return m
+    reach = int(np.ceil(4 * sigma))  # gaussian_filter's own truncation
+    box = (slice(max(rows[0] - reach, 0), rows[-1] + reach + 1),
+           slice(max(columns[0] - reach, 0), columns[-1] + reach + 1))
+    feathered = np.zeros_like(m)
+    feathered[box] = np.clip(gaussian_filter(m[box], sigma), 0.0, 1.0)
+    return feathered
 
 
 def _read_mask(path: Path, size: tuple[int, int], name: str) -> np.ndarray:

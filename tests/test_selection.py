@@ -5,11 +5,12 @@ import json
 import numpy as np
 import pytest
 from PIL import Image
+from scipy.ndimage import gaussian_filter
 
 from palette_core import InputError, read_stack
 from palette_core.basis import Basis, weights_to_rgb
 from palette_core.cli import decompose, recolor
-from palette_core.selection import Selection, parse_near, recolor_selected
+from palette_core.selection import Selection, _feathered, parse_near, recolor_selected
 
 from .helpers import expect_error
 
@@ -56,6 +57,14 @@ def test_a_feathered_edit_moves_each_pixel_by_at_most_its_share(stack_and_edit):
     assert np.allclose(rgb - original, m[..., None] * (full - original), atol=1e-12)
     assert np.all(np.abs(rgb - original) <= np.abs(full - original) + 1e-12)
     assert np.array_equal(rgb[m == 0], original[m == 0])
+
+
+@pytest.mark.parametrize("box", [np.s_[50:80, 100:180], np.s_[0:30, 250:300], np.s_[:, :]])
+@pytest.mark.parametrize("sigma", [0.7, 8.0])
+def test_feathering_around_the_selection_equals_feathering_everywhere(box, sigma, rng):
+    m = np.zeros((200, 300))
+    m[box] = rng.random(m[box].shape)
+    assert np.array_equal(_feathered(m, sigma), np.clip(gaussian_filter(m, sigma), 0, 1))
 
 
 def test_colour_and_near_selections(stack_and_edit):
