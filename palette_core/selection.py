@@ -31,6 +31,7 @@ from scipy.ndimage import gaussian_filter
 from .basis import Basis, basis_terms, weights_to_rgb
 from .errors import InputError
 from .io import IMAGE_SUFFIXES, open_image
+from .outputs import inside
 from .stack import video_of
 
 
@@ -90,7 +91,7 @@ class Selection:
             return mask
         stem = name if video_of(name) else str(PurePosixPath(name).with_suffix(""))
         for suffix in IMAGE_SUFFIXES:
-            candidate = mask / (stem + suffix)
+            candidate = inside(mask, stem + suffix)  # a stack's names cannot climb out
             if candidate.is_file():
                 return candidate
         raise InputError(f"no mask for image {name} in {mask} (expected {stem}.png)")
