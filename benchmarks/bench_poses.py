@@ -37,8 +37,6 @@ from nerf_stage.run import load_run
 from nerf_stage.trainer import train
 from palette_core import decompose, read_stack
 
-SPLITS_ORDER = ("train", *SPLITS)
-
 
 def photo_folder(scene: Path, data, out: Path) -> Path:
     """Every view of ``data`` copied into ``out`` as ``SPLIT_FILE`` (once)."""
@@ -136,9 +134,8 @@ def main() -> None:
           f"({100 * np.median(centre) / spread:.2f} % and {100 * centre.max() / spread:.2f} % "
           "of the cameras' mean distance from their centroid)"
           + (f"; not registered: {', '.join(missing)}" if missing else ""), flush=True)
-    error_figure(np.array([int(Path(n).stem.split("_")[-1]) + 1000 * SPLITS_ORDER.index(
-        Path(n).name.split("_")[0]) for n in data.names]), rotation, centre / spread,
-        args.out / f"{scene.name}-pose-errors.png")
+    error_figure(np.asarray(matched), rotation, centre / spread,  # Blender's frame order
+                 args.out / f"{scene.name}-pose-errors.png")
     floor = {split: noise_floor(truth, split) for split in SPLITS}
     results["floor"] = floor
     print("noise floor (Blender's views under another sampler seed): "
