@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -41,12 +43,11 @@ from palette_core import decompose, read_stack
 def photo_folder(scene: Path, data, out: Path) -> Path:
     """Every view of ``data`` copied into ``out`` as ``SPLIT_FILE`` (once)."""
     if not out.is_dir():
-        staging = out.with_name(out.name + ".partial")
-        shutil.rmtree(staging, ignore_errors=True)
-        staging.mkdir(parents=True)
-        for name, split in zip(data.names, data.splits):
-            shutil.copyfile(scene / name, staging / f"{split}_{Path(name).name}")
-        staging.rename(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=f".{out.name}.", dir=out.parent) as staging:
+            for name, split in zip(data.names, data.splits):
+                shutil.copyfile(scene / name, Path(staging) / f"{split}_{Path(name).name}")
+            os.rename(staging, out)  # the emptied temporary name is then gone
     return out
 
 

@@ -126,28 +126,24 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
         with open_image(root / names[0]) as first:
             width, height = first.size
         focal = focal_length(width, angle)
-        intrinsics = Intrinsics(width, height, focal, focal, width / 2, height / 2)
-        frame_intrinsics = None
+        frame_intrinsics = [Intrinsics(width, height, focal, focal, width / 2, height / 2)]
     elif (root / "transforms.json").is_file():
         layout = "nerfstudio"
         names, splits, poses, frame_intrinsics = _read_nerfstudio(root, frames_outside)
-        intrinsics = frame_intrinsics[0]
-        if all(camera == intrinsics for camera in frame_intrinsics):
-            frame_intrinsics = None
     elif (model := find_model(root)) is not None:
         layout = "colmap"
         names, poses, frame_intrinsics = model_frames(read_model(model), str(root))
         names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
                  for name in names]
         splits = _holdout(len(names))
-        intrinsics = frame_intrinsics[0]
-        if all(camera == intrinsics for camera in frame_intrinsics):
-            frame_intrinsics = None
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout), "
                          "transforms.json (nerfstudio layout) nor a COLMAP model (sparse/0): "
                          "make one with nerf-stage poses PHOTOS -o DIR or nerf-stage simulate "
                          "SCENE DIR, or capture one")
+    intrinsics = frame_intrinsics[0]
+    if all(camera == intrinsics for camera in frame_intrinsics):
+        frame_intrinsics = None  # one camera for all frames
     if min(intrinsics.width, intrinsics.height) < downscale:
         raise InputError(f"{root}: images of {intrinsics.width}x{intrinsics.height} cannot be "
                          f"downscaled {downscale} times")
