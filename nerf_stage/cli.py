@@ -138,6 +138,10 @@ def _add_render(commands) -> None:
                         help="render through the colour part baked into a grid FACTOR (default "
                              f"{BAKE_FACTOR}) times finer than the field's (grid runs "
                              "with per-sample diffuse colours: no network, faster)")
+    render.add_argument("--region", action="append", default=[], metavar="REGION",
+                        help="apply the palettes inside this region only (world coordinates; "
+                             "repeatable): box:x0,y0,z0,x1,y1,z1, ellipsoid:cx,cy,cz,rx,ry,rz "
+                             "or a JSON file with \"regions\" (docs/selections.md)")
     render.add_argument("-o", "--output", required=True, metavar="DIR")
     render.add_argument("--force", action="store_true",
                         help="overwrite existing outputs (and a render.npz of other views)")
@@ -236,13 +240,16 @@ def _train(args) -> int:
 
 def _render(args) -> int:
     from .editing import RENDER_FILE, render_edits
+    from .regions import parse_region
 
+    regions = [region for text in args.region for region in parse_region(text)]
     done = render_edits(args.rundir, args.output, args.palette, args.harmonize, args.split,
-                        args.orbit, args.force, baked=args.baked)
+                        args.orbit, args.force, baked=args.baked, regions=regions)
     if done.reused:
         print(f"recoloured the saved weight render {Path(args.output) / RENDER_FILE} "
               "(the network does not run)")
-    print(f"wrote {', '.join(done.labels)} ({done.views} views) to {args.output}")
+    where = f" (inside {len(regions)} region{'s' * (len(regions) > 1)})" if regions else ""
+    print(f"wrote {', '.join(done.labels)} ({done.views} views) to {args.output}{where}")
     return 0
 
 

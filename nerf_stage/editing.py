@@ -1,23 +1,25 @@
 """Weight renders of a trained run: render once, then recolour by palette edits.
 
-A weight render (``render.npz``, format ``palette-render/1``, docs/formats.md)
+A weight render (``render.npz``, format ``palette-render/2``, docs/formats.md)
 holds the composited weights of some views, premultiplied by opacity, with the
 opacity itself. Recolouring it is a matrix product,
 ``image = weights @ basis(palette) + (1 - opacity) background``, and never runs
-the network again.
+the network again. A render for regions (``regions``) also holds the samples behind
+each pixel and the weights inside the regions, so that a region recolours with its own
+palette, and moves, without the network.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from palette_core.basis import Basis, n_terms, weights_to_rgb
+from palette_core.basis import Basis, basis_terms, n_terms, weights_to_rgb
 from palette_core.errors import InputError, OutputExists
 from palette_core.outputs import atomic_outputs, inside, publish_folder, save_image
 from palette_core.palette_file import read_palette_json
@@ -26,10 +28,12 @@ from palette_core.swatch import palette_swatch
 
 from .cameras import Intrinsics, orbit_poses
 from .fields import RGB
+from .regions import PixelSamples, Region
 from .run import Run, load_run
 
 RENDER_FILE = "render.npz"
-RENDER_FORMAT = "palette-render/1"
+RENDER_FORMAT = "palette-render/2"
+READ_FORMATS = ("palette-render/1", RENDER_FORMAT)  # version 1: no samples, no regions
 MAX_ORBIT = 3600  # views of a turntable
 
 
@@ -52,6 +56,11 @@ class WeightRender:
         Run directory, checkpoint iteration, when its training ended (the log's last
         ``seconds``, so that a run trained again in the same folder is rendered again)
         and views: what the render came from.
+    samples : regions.PixelSamples or None
+        Where each pixel's light comes from, kept to split the weights by regions.
+    regions : list of regions.Region
+    inside : (N, H, W, M) float32 or None
+        The part of ``weights`` inside the regions (``regions`` module), when there are any.
     """
 
     weights: np.ndarray
@@ -62,16 +71,47 @@ class WeightRender:
     order: int
     background: np.ndarray
     source: dict
+    samples: PixelSamples | None = None
+    regions: list[Region] = field(default_factory=list)
+    inside: np.ndarray | None = None
 
-    def recolor(self, palette: np.ndarray | None = None) -> np.ndarray:
-        """(N, H, W, 3) float64 images in [0, 1] for ``palette`` (K, 3), the run's by default."""
-        palette = self.palette if palette is None else np.asarray(palette, np.float64)
+    def recolor(self, palette: np.ndarray | None = None,
+                inside: np.ndarray | None = None) -> np.ndarray:
+        """(N, H, W, 3) float64 images in [0, 1]: ``palette`` (K, 3; the run's by default)
+        everywhere, or, given ``inside`` (K, 3), ``palette`` outside the regions and
+        ``inside`` within them. A pixel without weight inside is exactly as without regions.
+        """
+        palette = self._checked(self.palette if palette is None else palette)
+        rgb = weights_to_rgb(self.weights, palette, self.basis, self.order)
+        if inside is not None:
+            if self.inside is None:
+                raise InputError("this render has no regions to recolour inside")
+            change = (basis_terms(self._checked(inside), self.basis, self.order)
+                      - basis_terms(palette, self.basis, self.order))
+            rgb += self.inside @ change
+        rgb += (1 - self.opacity[..., None]) * self.background
+        return np.clip(rgb, 0, 1)
+
+    def _checked(self, palette) -> np.ndarray:
+        palette = np.asarray(palette, np.float64)
         if palette.shape != self.palette.shape:
             raise InputError(f"palette must have shape {self.palette.shape} like the run's, "
                              f"got {palette.shape}")
-        rgb = (weights_to_rgb(self.weights, palette, self.basis, self.order)
-               + (1 - self.opacity[..., None]) * self.background)
-        return np.clip(rgb, 0, 1)
+        return palette
+
+    def with_regions(self, regions: list[Region]) -> WeightRender:
+        """This render with its weights split by ``regions`` (no network: its samples).
+
+        Raises
+        ------
+        InputError
+            If the render kept no samples (rendered without regions, or format version 1).
+        """
+        if self.samples is None:
+            raise InputError("this render kept no samples to split by regions: render it "
+                             "again with --region")
+        share = self.samples.shares(regions, self.opacity.shape)
+        return replace(self, regions=list(regions), inside=self.weights * share[..., None])
 
     def as_stack(self) -> WeightStack:
         """The weights as a format-v1 stack (for palette shares and harmonisation)."""
@@ -96,53 +136,90 @@ def render_poses(run: Run, dataset, split: str | None, orbit: int | None):
 
 def render_weights(run: Run, names: list[str], poses: np.ndarray, source: dict,
                    progress: bool = True,
-                   intrinsics: Intrinsics | list[Intrinsics] | None = None) -> WeightRender:
+                   intrinsics: Intrinsics | list[Intrinsics] | None = None,
+                   samples: bool = False) -> WeightRender:
     """Render the run's weights for ``poses`` (runs the network), with the training
-    camera unless ``intrinsics`` gives one or one a view (``Run.render``)."""
+    camera unless ``intrinsics`` gives one or one a view (``Run.render``); ``samples``
+    keeps the samples behind each pixel (for ``WeightRender.with_regions``)."""
     if run.field.kind == RGB:
         raise InputError("this run was trained on RGB only (strategy 'rgb'): it has no weights")
-    weights, opacity = run.render(poses, progress, intrinsics)
+    weights, opacity, *kept = run.render(poses, progress, intrinsics, samples)
     return WeightRender(weights, opacity, names, run.palette, run.basis, run.order,
-                        np.asarray(run.config.background, np.float64), source)
+                        np.asarray(run.config.background, np.float64), source,
+                        kept[0] if kept else None)
 
 
 def write_render(render: WeightRender, path: str | os.PathLike) -> None:
-    """Write a weight render as NPZ format ``palette-render/1``."""
+    """Write a weight render as NPZ format ``palette-render/2``."""
+    extra = {}
+    if render.samples is not None:
+        extra.update(sample_pixel=render.samples.pixel, sample_point=render.samples.point,
+                     sample_weight=render.samples.weight)
+    if render.inside is not None:
+        extra.update(inside=render.inside,
+                     regions=np.array(json.dumps([r.to_dict() for r in render.regions])))
     np.savez(path, format=np.array(RENDER_FORMAT), weights=render.weights,
              opacity=render.opacity, names=np.array(render.names, dtype=str),
              palette=render.palette, basis=np.array(str(render.basis)),
              order=np.array(render.order), background=render.background,
-             source=np.array(json.dumps(render.source)))
+             source=np.array(json.dumps(render.source)), **extra)
 
 
 def read_render(path: str | os.PathLike) -> WeightRender:
-    """Read and validate a weight render.
+    """Read and validate a weight render (format version 1 or 2).
 
     Raises
     ------
     InputError
-        If the file is not a ``palette-render/1`` NPZ or a key is missing or malformed.
+        If the file is not such an NPZ or a key is missing or malformed.
     """
     with NpzReader(Path(path), f"a weight render ({RENDER_FORMAT})") as npz:
-        if npz.text("format") != RENDER_FORMAT:
+        version = npz.text("format")
+        if version not in READ_FORMATS:
             raise InputError(f"{path} is not a weight render (format {RENDER_FORMAT})")
         weights, opacity = npz.array("weights", "f"), npz.array("opacity", "f")
         palette, background = npz.array("palette", "f"), npz.array("background", "f")
         names = npz.array("names", "U").tolist()
         basis, order = Basis.parse(npz.text("basis")), int(npz.array("order", "iu"))
         source = npz.json("source")
+        samples = (PixelSamples(npz.array("sample_pixel", "iu"), npz.array("sample_point", "f"),
+                                npz.array("sample_weight", "f"))
+                   if "sample_pixel" in npz else None)
+        inside = npz.array("inside", "f") if "inside" in npz else None
+        regions = ([Region.from_dict(r, str(path)) for r in _listed(npz.json("regions"), path)]
+                   if inside is not None else [])
     check_names(names, str(path))
     n = len(names)
     m = n_terms(len(palette), basis, order)
     if (weights.shape[:1] != (n,) or weights.ndim != 4 or weights.shape[-1] != m
             or opacity.shape != weights.shape[:3] or palette.ndim != 2
             or palette.shape[1:] != (3,) or background.shape != (3,)
-            or not isinstance(source, dict)):
-        raise InputError(f"{path}: weights, opacity, palette or background have the wrong shape")
-    if not (np.isfinite(weights).all() and np.isfinite(opacity).all()):
+            or not isinstance(source, dict)
+            or (inside is not None and inside.shape != weights.shape)):
+        raise InputError(f"{path}: weights, opacity, palette, background or the weights inside "
+                         "the regions have the wrong shape")
+    if not all(np.isfinite(x).all() for x in (weights, opacity, inside) if x is not None):
         raise InputError(f"{path}: weights or opacity hold NaN or infinity")
+    if samples is not None:
+        _check_samples(samples, opacity.size, path)
     return WeightRender(weights, opacity, names, palette.astype(np.float64), basis, order,
-                        background.astype(np.float64), source)
+                        background.astype(np.float64), source, samples, regions, inside)
+
+
+def _listed(value, path) -> list:
+    if not isinstance(value, list):
+        raise InputError(f"{path}: regions must be a list")
+    return value
+
+
+def _check_samples(samples: PixelSamples, pixels: int, path) -> None:
+    """InputError unless ``samples`` fit views of ``pixels`` pixels in all."""
+    p = len(samples.pixel)
+    if (samples.pixel.ndim != 1 or samples.point.shape != (p, 3)
+            or samples.weight.shape != (p,)
+            or (p and not 0 <= samples.pixel.min() <= samples.pixel.max() < pixels)
+            or not (np.isfinite(samples.point).all() and np.isfinite(samples.weight).all())):
+        raise InputError(f"{path}: the samples behind its pixels are malformed")
 
 
 def write_gif(path: Path, frames: np.ndarray, seconds_per_frame: float = 0.08) -> None:
@@ -166,7 +243,7 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
                  palette_files: list[str] = (), templates: list[str] = (),
                  split: str = "test", orbit: int | None = None,
                  force: bool = False, progress: bool = True,
-                 baked: int | None = None) -> EditedRenders:
+                 baked: int | None = None, regions: list[Region] = ()) -> EditedRenders:
     """Render a run's weights once into ``out/render.npz`` and recolour them.
 
     One folder per palette file (``out/<file stem>``), per harmonisation template
@@ -174,7 +251,9 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     own palette (``out/original``) when neither is given; an orbit also gives
     ``out/<label>.gif``. A render of the same run and views in ``out`` is reused.
     ``baked`` renders through the field baked at that factor (``Run.baked``: no network,
-    faster).
+    faster). With ``regions``, each palette applies inside them only and the run's own
+    outside (``WeightRender.with_regions``); the render keeps its samples, so that other
+    regions reuse it too.
 
     Raises
     ------
@@ -191,6 +270,8 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     if unknown:
         raise InputError(f"unknown template {unknown[0]!r}; choose one of "
                          f"{BEST}, {', '.join(TEMPLATES)}")
+    if regions and not (palette_files or templates):
+        raise InputError("a region needs a palette to apply inside it (--palette or --harmonize)")
     palettes = {} if palette_files or templates else {"original": run.palette}
     for path in palette_files:
         label = Path(path).stem
@@ -214,13 +295,18 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     existing = [str(path) for path in outputs if path.exists()]
     if existing and not force:
         raise OutputExists(f"output {existing[0]} already exists (use --force to overwrite)")
-    reused = render is not None and render.source == source
+    reused = (render is not None and render.source == source
+              and (render.samples is not None or not regions))
     if not reused:
         dataset = run.dataset()
         names, poses, cameras = render_poses(run, dataset, split, orbit)
         renderer = run if baked is None else run.baked(baked)
-        render = render_weights(renderer, names, poses, source, progress, cameras)
-        with atomic_outputs(force) as stage:
+        render = render_weights(renderer, names, poses, source, progress, cameras,
+                                samples=bool(regions))
+    if regions:
+        render = render.with_regions(regions)
+    if not reused or regions:
+        with atomic_outputs(True) as stage:  # checked above: ours, of the same views
             write_render(render, stage(cache))
     if templates:
         shares = palette_shares(render.as_stack())
@@ -234,8 +320,10 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
 
 def _write_recoloured(render: WeightRender, palette: np.ndarray, folder: Path, gif: bool,
                       force: bool) -> None:
-    """Views recoloured with ``palette`` into ``folder`` (published whole), plus a GIF."""
-    images = render.recolor(palette)
+    """Views recoloured with ``palette`` into ``folder`` (published whole), plus a GIF;
+    inside the render's regions only, when it has some."""
+    images = (render.recolor(palette) if render.inside is None
+              else render.recolor(render.palette, inside=palette))
     with atomic_outputs(force) as stage, publish_folder(folder, force) as staging:
         for name, image in zip(render.names, images):
             save_image(inside(staging, f"{name}.png"), image)

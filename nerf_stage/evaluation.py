@@ -20,13 +20,14 @@ from .simulation import SimulationRecord
 
 
 def resimulated_views(simulation: SimulationRecord, palette: np.ndarray, poses: np.ndarray,
-                      background: np.ndarray) -> np.ndarray:
+                      background: np.ndarray, only: set[str] | None = None) -> np.ndarray:
     """(N, H, W, 3) views of the simulated scene behind a transport stack, re-traced with
-    its editable materials set to ``palette`` and composited like the dataset's PNGs."""
+    its editable materials (or those named in ``only``: a local edit) set to ``palette``
+    and composited like the dataset's PNGs."""
     from .simulation import load_scene, render_terms, with_palette
 
     scene = simulation.applied_to(load_scene(simulation.scene))
-    radiance, alpha = render_terms(with_palette(scene, palette), poses, split=False)
+    radiance, alpha = render_terms(with_palette(scene, palette, only), poses, split=False)
     return composited(radiance[..., 0, :], alpha, background)
 
 

@@ -127,6 +127,18 @@ class Samples:
         return self.opacity[:, None] * values if deferred else self.composite(values)
 
 
+def sample_positions(samples: Samples, occupancy: OccupancyGrid, origins: torch.Tensor,
+                     directions: torch.Tensor) -> torch.Tensor:
+    """(P, 3) where ``samples`` of rays ``origins``, ``directions`` (R, 3) lie in the normalised
+    box coordinates, uncontracted (an unbounded scene's samples beyond the box are far away)."""
+    _, _, bend = ray_interval(occupancy, origins, directions)
+    t = samples.t
+    if bend is not None:
+        b = bend[samples.ray]
+        t = torch.where(t <= b, t, b * b / (2 * b - t).clamp(min=1e-12))
+    return origins[samples.ray] + t[:, None] * directions[samples.ray]
+
+
 def scale_near_gradients(values: torch.Tensor, t: torch.Tensor, near: float) -> torch.Tensor:
     """``values`` (P, ...) unchanged, their gradients scaled by min(1, (t / near)^2) at the
     samples' distances ``t`` (P,) from the camera: a point close to a camera covers many of

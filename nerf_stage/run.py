@@ -25,7 +25,8 @@ from .config import BAKE_FACTOR, TrainConfig
 from .data import Dataset, check_downscale, load_dataset
 from .fields import RGB, Field, RaySampling, make_field
 from .occupancy import OccupancyGrid
-from .rendering import render_rays
+from .regions import KEEP_WEIGHT, PixelSamples
+from .rendering import render_rays, sample_positions
 from .scene_box import SceneBox, box_from_dict, normalised_rays
 
 CHECKPOINT = "checkpoint.pt"
@@ -155,8 +156,8 @@ class Run:
 
     @torch.no_grad()
     def render(self, poses: np.ndarray, progress: bool = False,
-               intrinsics: Intrinsics | list[Intrinsics] | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+               intrinsics: Intrinsics | list[Intrinsics] | None = None,
+               samples: bool = False) -> tuple:
         """Render whole views, with the training camera unless ``intrinsics`` gives one
         camera or one a view (of one size); a pixel is the mean of its
         ``TrainConfig.supersampling``^2 rays.
@@ -166,25 +167,47 @@ class Run:
         values : (N, H, W, C) float32
             The field's outputs (weights, or RGB) premultiplied by opacity.
         acc : (N, H, W) float32
+        pixel_samples : regions.PixelSamples
+            Only with ``samples``: where each pixel's light comes from (to split its
+            weights by regions).
         """
         self.field.eval()
         device = self.occupancy.extent.device
         cameras = (intrinsics if isinstance(intrinsics, list)
                    else [intrinsics or self.intrinsics] * len(poses))
-        values, accs = [], []
-        for pose, camera in tqdm(zip(poses, cameras), desc="render", unit="view",
-                                 total=len(poses), disable=not progress):
-            shape = (camera.height, camera.width, self.config.supersampling ** 2)
+        rays = self.config.supersampling ** 2
+        values, accs, kept = [], [], []
+        for view, (pose, camera) in enumerate(tqdm(zip(poses, cameras), desc="render",
+                                                   unit="view", total=len(poses),
+                                                   disable=not progress)):
+            shape = (camera.height, camera.width, rays)
             origins, directions = normalised_rays(pose, camera, self.box, device,
                                                   self.config.supersampling)
-            chunks = (render_rays(self.field, self.occupancy, o, d, self.render_sampling)
-                      for o, d in zip(origins.flatten(0, 1).split(RENDER_CHUNK),
-                                      directions.flatten(0, 1).split(RENDER_CHUNK)))
-            outputs = [(v, samples.opacity) for v, samples in chunks]
+            outputs = []
+            for start in range(0, origins.shape[0] * rays, RENDER_CHUNK):
+                o, d = (x.flatten(0, 1)[start:start + RENDER_CHUNK] for x in (origins, directions))
+                v, chunk = render_rays(self.field, self.occupancy, o, d, self.render_sampling)
+                outputs.append((v, chunk.opacity))
+                if samples:
+                    first_pixel = view * camera.height * camera.width
+                    kept.append(self._pixel_samples(chunk, o, d, start, first_pixel, rays))
             values.append(torch.cat([v for v, _ in outputs]).reshape(*shape, -1).mean(2)
                           .cpu().numpy())
             accs.append(torch.cat([a for _, a in outputs]).reshape(shape).mean(2).cpu().numpy())
-        return np.stack(values), np.stack(accs)
+        rendered = np.stack(values), np.stack(accs)
+        return (*rendered, PixelSamples.concatenate(kept)) if samples else rendered
+
+    def _pixel_samples(self, chunk, origins, directions, first_ray: int, first_pixel: int,
+                       rays: int) -> PixelSamples:
+        """The visible samples of a chunk of rays (from ray ``first_ray`` of a view whose
+        first pixel is ``first_pixel``, ``rays`` rays a pixel) above ``KEEP_WEIGHT``."""
+        visible = chunk.visible()
+        weight = visible.weight / rays
+        keep = weight >= KEEP_WEIGHT
+        points = sample_positions(visible, self.occupancy, origins, directions)[keep]
+        world = points.cpu().numpy().astype(np.float64) * self.box.scale + self.box.centre
+        pixel = first_pixel + (first_ray + visible.ray[keep]).cpu().numpy() // rays
+        return PixelSamples(pixel, world.astype(np.float32), weight[keep].cpu().numpy())
 
 
 def check_rundir(rundir: Path, resume: bool, force: bool) -> None:

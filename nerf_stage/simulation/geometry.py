@@ -95,7 +95,6 @@ def scene_arrays(scene: Scene) -> SceneArrays:
     textures = [m.texture for m in materials if m.texture is not None]
     tex_offsets = np.cumsum([0] + [t.shape[0] * t.shape[1] for t in textures])
     tex_ids = np.cumsum([m.texture is not None for m in materials]) - 1
-    palette_ids = np.cumsum([m.editable for m in materials]) - 1
     n_lights = len(emission)
     return SceneArrays(
         prim_kind=prim_kind,
@@ -106,8 +105,8 @@ def scene_arrays(scene: Scene) -> SceneArrays:
         mat_texture=np.array([t if m.texture is not None else -1
                               for m, t in zip(materials, tex_ids)] + [-1] * n_lights, np.int64),
         mat_tex_scale=np.array([m.texture_scale for m in materials] + [(1.0, 1.0)] * n_lights),
-        mat_palette=np.array([p if m.editable else -1 for m, p in zip(materials, palette_ids)]
-                             + [-1] * n_lights, np.int64),
+        mat_palette=np.array([scene.palette_index(m) for m in materials] + [-1] * n_lights,
+                             np.int64),
         mat_emission=np.array([np.zeros(3)] * n_materials + emission),
         tex_info=np.array([(o, t.shape[0], t.shape[1]) for o, t in zip(tex_offsets, textures)],
                           np.int64).reshape(-1, 3),

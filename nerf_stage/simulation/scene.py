@@ -4,6 +4,7 @@ A scene file holds five sections (README, "Scene files", documents every field):
 
     materials  name -> {"albedo": [r, g, b] | "texture": "skimage:coffee" | "img.png",
                         "texture_scale": [su, sv], "editable": bool}
+               | {"colour_of": name}
     objects    [{"type": "sphere" | "quad" | "box" | "cylinder" | "mesh", "material": name, ...}]
     lights     [{"type": "area", "corner", "edge1", "edge2", "emission"}
                 | {"type": "point", "position", "intensity"}]
@@ -12,7 +13,10 @@ A scene file holds five sections (README, "Scene files", documents every field):
     render     {"light": "direct" | "indirect", "order", "max_depth", "spp", "seed"}
 
 Editable materials are the palette, in the order they are listed; their albedos
-are plain colours. Every message about a malformed file names the field.
+are plain colours. A material with ``colour_of`` takes another editable material's palette
+colour: two objects of one colour whose materials can still be told apart (to re-simulate
+an edit of one of them only, ``simulate.with_palette``). Every message about a malformed
+file names the field.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from palette_core.errors import InputError
 from palette_core.io import load_image
 
 BUILTIN_SCENES = ("cornell-box", "still-life", "room-corner", "marbles", "open-field",
-                  "forward-shelf")
+                  "forward-shelf", "clay-twins")
 OBJECT_TYPES = ("sphere", "quad", "box", "cylinder", "mesh")
 LIGHT_TYPES = ("area", "point")
 RIGS = ("orbit", "hemisphere", "front-arc")
@@ -60,6 +64,7 @@ class Material:
     texture: np.ndarray | None = None  # (H, W, 3) float64 in [0, 1]
     texture_scale: tuple[float, float] = (1.0, 1.0)
     editable: bool = False
+    colour_of: str | None = None  # the editable material whose palette colour this one shares
 
 
 @dataclass
@@ -102,8 +107,15 @@ class Scene:
 
     @property
     def palette_materials(self) -> list[Material]:
-        """The editable materials, in palette order."""
-        return [m for m in self.materials if m.editable]
+        """The editable materials that own a palette colour, in palette order."""
+        return [m for m in self.materials if m.editable and m.colour_of is None]
+
+    def palette_index(self, material: Material) -> int:
+        """The palette colour ``material`` takes (its own, or its ``colour_of``'s); -1 for a
+        fixed material."""
+        names = [m.name for m in self.palette_materials]
+        name = material.colour_of or material.name
+        return names.index(name) if material.editable else -1
 
 
 def builtin_scene_path(name: str) -> Path:
@@ -230,6 +242,9 @@ def _parse_materials(reader: _Fields, table: dict, root: Path) -> list[Material]
     for name, spec in table.items():
         where = f"materials.{name}"
         spec = reader.table(spec, where)
+        if "colour_of" in spec:
+            materials.append(_shared_colour(reader, name, spec, where, materials))
+            continue
         reader.only(spec, where, ("albedo", "texture", "texture_scale", "editable"))
         editable = spec.get("editable", False)
         if not isinstance(editable, bool):
@@ -252,6 +267,18 @@ def _parse_materials(reader: _Fields, table: dict, root: Path) -> list[Material]
     if not materials:
         raise reader.fail("materials", "a non-empty table", table)
     return materials
+
+
+def _shared_colour(reader: _Fields, name: str, spec: dict, where: str,
+                   before: list[Material]) -> Material:
+    """A material whose colour is that of an editable material listed before it."""
+    reader.only(spec, where, ("colour_of",))
+    owners = {m.name: m for m in before if m.editable and m.colour_of is None}
+    owner = owners.get(spec["colour_of"]) if isinstance(spec["colour_of"], str) else None
+    if owner is None:
+        raise reader.fail(f"{where}.colour_of", "the name of an editable material with an "
+                          "albedo listed before it", spec["colour_of"])
+    return Material(name, owner.albedo, editable=True, colour_of=owner.name)
 
 
 def _load_texture(reader: _Fields, spec, where: str, root: Path) -> np.ndarray:

@@ -171,15 +171,29 @@ def with_overrides(scene: Scene, order=None, spp=None, resolution=None, views=No
     return replace(scene, render=render, camera=camera)
 
 
-def with_palette(scene: Scene, palette: np.ndarray) -> Scene:
-    """A copy of ``scene`` whose editable materials take the (K, 3) ``palette`` albedos."""
+def with_palette(scene: Scene, palette: np.ndarray, only: set[str] | None = None) -> Scene:
+    """A copy of ``scene`` whose editable materials take their (K, 3) ``palette`` albedos, or,
+    with ``only``, those materials named in it only (a local edit: the others keep theirs).
+
+    Raises
+    ------
+    InputError
+        If the palette has another size than the scene's, or ``only`` names a material that
+        is not editable.
+    """
     palette = np.asarray(palette, np.float64)
-    editable = scene.palette_materials
-    if palette.shape != (len(editable), 3):
-        raise InputError(f"palette must have shape ({len(editable)}, 3) for scene {scene.name}, "
+    k = len(scene.palette_materials)
+    if palette.shape != (k, 3):
+        raise InputError(f"palette must have shape ({k}, 3) for scene {scene.name}, "
                          f"got {palette.shape}")
-    colours = iter(palette)
-    materials = [replace(m, albedo=next(colours)) if m.editable else m for m in scene.materials]
+    editable = {m.name for m in scene.materials if m.editable}
+    if only is not None and not set(only) <= editable:
+        unknown = sorted(set(only) - editable)[0]
+        raise InputError(f"scene {scene.name} has no editable material {unknown!r} "
+                         f"(editable: {', '.join(sorted(editable))})")
+    materials = [replace(m, albedo=palette[scene.palette_index(m)])
+                 if m.editable and (only is None or m.name in only) else m
+                 for m in scene.materials]
     return replace(scene, materials=materials)
 
 

@@ -1,0 +1,180 @@
+"""Regions of a scene: boxes and ellipsoids in world coordinates, inside which a palette edit
+applies (docs/selections.md, "Scenes").
+
+Recolouring is linear in the weights, so a render's weights w split exactly into a part
+inside the regions and a part outside, each recoloured with its own palette:
+
+    rgb = (w - w_in) @ B(P_out) + w_in @ B(P_in) + (1 - opacity) background.
+
+A pixel's light comes from the samples along its rays, each with its compositing weight
+T_i alpha_i. ``w_in`` is w times the share of that weight whose samples lie in a region
+(``PixelSamples.shares``): exact for a pixel whose samples all lie on one side, and for a
+deferred field (``GridConfig.deferred``: one colour per ray) the only split there is. The
+samples are kept with a render, so moving a region splits again without the network.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from palette_core.errors import InputError
+
+SHAPES = ("box", "ellipsoid")
+#: Samples below this compositing weight are not kept (``PixelSamples``): together they
+#: hold a negligible share of any pixel.
+KEEP_WEIGHT = 1e-3
+
+
+@dataclass(frozen=True)
+class Region:
+    """A box or an ellipsoid, axis-aligned in world coordinates.
+
+    Attributes
+    ----------
+    shape : "box" or "ellipsoid"
+    centre : (3,) tuple of float
+    half : (3,) tuple of float
+        Half sizes (box) or radii (ellipsoid), all positive.
+    """
+
+    shape: str
+    centre: tuple[float, float, float]
+    half: tuple[float, float, float]
+
+    def __post_init__(self):
+        if self.shape not in SHAPES:
+            raise InputError(f"unknown region shape {self.shape!r}; choose one of "
+                             f"{', '.join(SHAPES)}")
+        numbers = (*self.centre, *self.half)
+        if len(numbers) != 6 or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                        and math.isfinite(x) for x in numbers):
+            raise InputError(f"a {self.shape} region needs 3 finite centre coordinates and "
+                             f"3 finite sizes, got {list(self.centre)} and {list(self.half)}")
+        if min(self.half) <= 0:
+            raise InputError(f"a {self.shape} region needs sizes above zero, got "
+                             f"{list(self.half)}")
+
+    @classmethod
+    def box(cls, low, high) -> Region:
+        """The box between corners ``low`` and ``high`` (3,)."""
+        low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+        return cls("box", tuple(((low + high) / 2).tolist()),
+                   tuple((np.abs(high - low) / 2).tolist()))
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(P,) bool: which of the (P, 3) world ``points`` lie inside (its surface included)."""
+        offset = np.abs(points - np.asarray(self.centre, points.dtype))
+        offset /= np.asarray(self.half, points.dtype)
+        if self.shape == "box":
+            return (offset <= 1).all(-1)
+        return np.einsum("pc,pc->p", offset, offset) <= 1
+
+    def to_dict(self) -> dict:
+        return {"shape": self.shape, "centre": list(self.centre), "half": list(self.half)}
+
+    @classmethod
+    def from_dict(cls, data, where: str) -> Region:
+        """The region of ``to_dict``, from a file named by ``where``; InputError if malformed."""
+        if not isinstance(data, dict) or set(data) != {"shape", "centre", "half"}:
+            raise InputError(f"{where}: a region is {{\"shape\", \"centre\", \"half\"}}, got "
+                             f"{data!r}")
+        centre, half = data["centre"], data["half"]
+        if not (isinstance(centre, list) and isinstance(half, list)):
+            raise InputError(f"{where}: a region's centre and half are lists of 3 numbers")
+        return cls(data["shape"], tuple(centre), tuple(half))
+
+
+def parse_region(text: str) -> list[Region]:
+    """Regions from the command line: ``box:x0,y0,z0,x1,y1,z1`` (two corners),
+    ``ellipsoid:cx,cy,cz,rx,ry,rz`` (centre and radii), or a JSON file (``read_regions``).
+
+    Raises
+    ------
+    InputError
+        For an unknown shape, numbers that are not 6 finite ones, or a zero size.
+    """
+    shape, colon, numbers = text.partition(":")
+    if not colon:
+        return read_regions(text)
+    if shape not in SHAPES:
+        raise InputError(f"unknown region shape {shape!r} in {text!r}; choose one of "
+                         f"{', '.join(SHAPES)} (box:x0,y0,z0,x1,y1,z1 or "
+                         "ellipsoid:cx,cy,cz,rx,ry,rz), or give a region file")
+    try:
+        values = [float(x) for x in numbers.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6 or not all(math.isfinite(x) for x in values):
+        raise InputError(f"region {text!r} needs 6 finite numbers separated by commas")
+    if shape == "box":
+        return [Region.box(values[:3], values[3:])]
+    return [Region("ellipsoid", tuple(values[:3]), tuple(values[3:]))]
+
+
+def read_regions(path: str | os.PathLike) -> list[Region]:
+    """The regions of a JSON file: ``{"regions": [{"shape", "centre", "half"}, ...]}`` (a
+    palette file the studio saved holds them beside its colours; docs/formats.md)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"region file {path} does not exist (a region is "
+                         "box:x0,y0,z0,x1,y1,z1, ellipsoid:cx,cy,cz,rx,ry,rz or a file)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"region file {path} is not valid JSON: {exc}") from None
+    regions = data.get("regions") if isinstance(data, dict) else None
+    if not isinstance(regions, list) or not regions:
+        raise InputError(f"region file {path} must hold {{\"regions\": [regions...]}}")
+    return [Region.from_dict(r, f"region file {path}") for r in regions]
+
+
+def write_regions(data: dict, regions: list[Region]) -> dict:
+    """``data`` (a palette file's contents) with ``regions`` beside them."""
+    return {**data, "regions": [r.to_dict() for r in regions]}
+
+
+@dataclass
+class PixelSamples:
+    """Where the light of each pixel of some views comes from: its rays' samples.
+
+    Attributes
+    ----------
+    pixel : (P,) int64
+        Each sample's pixel, an index into the views' flattened (N, H, W) pixels.
+    point : (P, 3) float32
+        World positions (the sky of an unbounded scene lies a thousand box sizes away).
+    weight : (P,) float32
+        Compositing weights T_i alpha_i, averaged over the pixel's rays; samples below
+        ``KEEP_WEIGHT`` are dropped.
+    """
+
+    pixel: np.ndarray
+    point: np.ndarray
+    weight: np.ndarray
+
+    def shares(self, regions: list[Region], shape: tuple[int, ...]) -> np.ndarray:
+        """(shape) float32 in [0, 1]: each pixel's share of weight from samples inside any of
+        ``regions``, for views of ``shape`` (N, H, W); 0 where a pixel has no samples."""
+        inside = np.zeros(len(self.pixel), bool)
+        for region in regions:
+            inside |= region.contains(self.point)
+        n = math.prod(shape)
+        total = np.bincount(self.pixel, self.weight, minlength=n)
+        within = np.bincount(self.pixel[inside], self.weight[inside], minlength=n)
+        share = np.divide(within, total, out=np.zeros(n), where=total > 0)
+        return np.clip(share, 0, 1).astype(np.float32).reshape(shape)
+
+    @classmethod
+    def concatenate(cls, parts: list[PixelSamples]) -> PixelSamples:
+        return cls(*(np.concatenate([getattr(p, f) for p in parts])
+                     for f in ("pixel", "point", "weight")))
+
+
+__all__ = ["KEEP_WEIGHT", "PixelSamples", "Region", "SHAPES", "parse_region", "read_regions",
+           "write_regions"]
