@@ -35,12 +35,17 @@ def palette_paths(stack: str | os.PathLike) -> tuple[Path, Path]:
     return Path(stem + ".palette.png"), Path(stem + ".palette.json")
 
 
-def write_palette_json(file, palette: np.ndarray) -> None:
-    """Write ``{"palette": ["#rrggbb", ...], "rgb": [[r, g, b], ...]}`` (exact) to a path or
-    text file object."""
+def palette_entry(palette: np.ndarray) -> dict:
+    """(K, 3) floats -> ``{"palette": ["#rrggbb", ...], "rgb": [[r, g, b], ...]}`` (exact)."""
     exact = np.clip(np.asarray(palette, np.float64), 0, 1)
-    text = (f'{{\n  "palette": {json.dumps(palette_to_hex(exact))},\n'
-            f'  "rgb": {json.dumps(exact.tolist())}\n}}\n')
+    return {"palette": palette_to_hex(exact), "rgb": exact.tolist()}
+
+
+def write_palette_json(file, palette: np.ndarray) -> None:
+    """Write ``palette_entry(palette)`` to a path or text file object."""
+    entry = palette_entry(palette)
+    text = (f'{{\n  "palette": {json.dumps(entry["palette"])},\n'
+            f'  "rgb": {json.dumps(entry["rgb"])}\n}}\n')
     if hasattr(file, "write"):
         file.write(text)
     else:
@@ -63,34 +68,40 @@ def read_palette_json(path: str | os.PathLike, k: int | None = None) -> np.ndarr
         raise InputError(f"palette file {path} does not exist") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise InputError(f"palette file {path} is not valid JSON: {exc}") from None
+    return parse_palette(data, f"palette file {path}", k)
+
+
+def parse_palette(data, where: str, k: int | None = None) -> np.ndarray:
+    """The (K, 3) float64 palette of ``palette_entry``'s table ``data`` (from ``where``, for
+    messages); InputError as ``read_palette_json``."""
     entries = data.get("palette") if isinstance(data, dict) else None
     if not isinstance(entries, list) or not entries:
-        raise InputError(f"palette file {path} must hold {{\"palette\": [colours...]}}")
-    colours = [_parse_colour(entry, path, i) for i, entry in enumerate(entries)]
+        raise InputError(f"{where} must hold {{\"palette\": [colours...]}}")
+    colours = [_parse_colour(entry, where, i) for i, entry in enumerate(entries)]
     palette = np.array(colours, np.float64)
     if "rgb" in data:
         exact = data["rgb"]
         if not isinstance(exact, list) or len(exact) != len(entries):
-            raise InputError(f"palette file {path}: rgb must list as many colours as palette")
-        exact = np.array([_parse_colour(c if isinstance(c, list) else None, path, i)
+            raise InputError(f"{where}: rgb must list as many colours as palette")
+        exact = np.array([_parse_colour(c if isinstance(c, list) else None, where, i)
                           for i, c in enumerate(exact)], np.float64)
         unedited = np.array(palette_to_hex(exact)) == np.array(palette_to_hex(palette))
         palette[unedited] = exact[unedited]
     if k is not None and len(palette) != k:
-        raise InputError(f"palette file {path} has {len(palette)} colours, expected {k}")
+        raise InputError(f"{where} has {len(palette)} colours, expected {k}")
     return palette
 
 
-def _parse_colour(entry, path: Path, i: int) -> list[float]:
+def _parse_colour(entry, where: str, i: int) -> list[float]:
     if isinstance(entry, str):
         match = _HEX.match(entry.strip())
         if not match:
-            raise InputError(f"palette file {path}: colour {i} {entry!r} is not #rrggbb")
+            raise InputError(f"{where}: colour {i} {entry!r} is not #rrggbb")
         return [int(match.group(1)[j : j + 2], 16) / 255 for j in (0, 2, 4)]
     if (isinstance(entry, list) and len(entry) == 3
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in entry)):
         if not all(0.0 <= v <= 1.0 for v in entry):
-            raise InputError(f"palette file {path}: colour {i} {entry} has values outside [0, 1]")
+            raise InputError(f"{where}: colour {i} {entry} has values outside [0, 1]")
         return [float(v) for v in entry]
-    raise InputError(f"palette file {path}: colour {i} {entry!r} is neither #rrggbb "
+    raise InputError(f"{where}: colour {i} {entry!r} is neither #rrggbb "
                      "nor [r, g, b] floats in [0, 1]")

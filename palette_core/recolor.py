@@ -11,15 +11,15 @@ import numpy as np
 from .basis import weights_to_rgb
 from .errors import InputError
 from .outputs import atomic_outputs, check_writable, inside, save_image
-from .selection import Selection, recolor_selected
+from .selection import LocalEdit, recolor_local
 from .stack import WeightStack, video_of
 
 
 def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.PathLike,
                   force: bool = False, frames: bool = False,
-                  selection: Selection | None = None) -> list[Path]:
+                  edits: list[LocalEdit] = ()) -> list[Path]:
     """Write every image of ``stack`` recoloured with ``palette`` (K, 3) under its own name,
-    or, with a ``selection``, recoloured inside it only (``selection.recolor_selected``).
+    and with each of ``edits``' palettes inside its selection (``selection.recolor_local``).
 
     The frames of a video (names ``clip.mp4#000123``, ``stack.meta["videos"]`` giving
     its frame rate) become ``folder/clip.mp4`` at the source frame rate, or, with
@@ -47,15 +47,14 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     for path in targets[:len(videos)]:
         video_codec(path)  # before anything is written
 
-    if selection is not None:
-        selection.check(len(stack.palette))
+    for edit in edits:
+        edit.selection.check(len(stack.palette))
 
     def recoloured(i: int) -> np.ndarray:
         weights = np.asarray(stack.weights[i])
-        if selection is None:
+        if not edits:
             return weights_to_rgb(weights, palette, stack.basis, stack.order)
-        return recolor_selected(weights, np.asarray(stack.palette), palette, selection,
-                                stack.names[i], stack.basis, stack.order)
+        return recolor_local(weights, palette, edits, stack.names[i], stack.basis, stack.order)
 
     with atomic_outputs(force) as stage:
         for video, path in zip(videos, targets):

@@ -2,7 +2,7 @@
 
 Recolouring is linear in the weights, so splitting each pixel's weights w by its selection
 value m in [0, 1] and giving each part its own palette is exact, with no retraining and no
-leak (docs/selections.md):
+leak (docs/selections.md); several edits stack like layers (``recolor_local``):
 
     rgb = (m w) @ B(P_edit) + ((1 - m) w) @ B(P_orig) = rgb_orig + m w @ (B(P_edit) - B(P_orig))
 
@@ -97,16 +97,39 @@ class Selection:
         raise InputError(f"no mask for image {name} in {mask} (expected {stem}.png)")
 
 
-def recolor_selected(weights: np.ndarray, palette: np.ndarray, edited: np.ndarray,
-                     selection: Selection, name: str, basis, order: int = 1) -> np.ndarray:
-    """(H, W, 3) stack image ``name`` (its (H, W, M) ``weights``) recoloured with ``edited``
-    inside ``selection`` and with its own ``palette`` outside (module docstring)."""
-    original = weights_to_rgb(weights, palette, basis, order)
-    m = selection.values(name, weights, original, basis)
-    change = basis_terms(edited, basis, order) - basis_terms(palette, basis, order)
-    recoloured = weights @ change
-    recoloured *= m[..., None]
-    recoloured += original  # adds 0 (or -0) where m = 0: exactly the original there
+@dataclass(frozen=True)
+class LocalEdit:
+    """An edited (K, 3) ``palette`` that applies inside ``selection``."""
+
+    selection: Selection
+    palette: np.ndarray
+
+
+def recolor_local(weights: np.ndarray, palette: np.ndarray, edits: list[LocalEdit], name: str,
+                  basis, order: int = 1) -> np.ndarray:
+    """(H, W, 3) stack image ``name`` (its (H, W, M) ``weights``) recoloured with ``palette``
+    outside every edit and with each edit's palette inside its selection.
+
+    Edits stack like layers, a later one over the earlier ones: edit i gets the share
+    s_i = m_i prod_{j > i} (1 - m_j) of each pixel's weights (the shares and what is left
+    outside sum to one), so
+
+        rgb = w @ B(P) + sum_i s_i w @ (B(P_i) - B(P)),
+
+    which is exactly ``w @ B(P)`` where no selection reaches (module docstring).
+    """
+    outside = weights_to_rgb(weights, palette, basis, order)
+    base = basis_terms(palette, basis, order)
+    recoloured = np.zeros_like(outside)
+    uncovered = None  # prod (1 - m_j) over the edits above
+    for edit in reversed(edits):
+        m = edit.selection.values(name, weights, outside, basis)
+        share = m if uncovered is None else m * uncovered
+        change = weights @ (basis_terms(edit.palette, basis, order) - base)
+        change *= share[..., None]
+        recoloured += change
+        uncovered = 1 - m if uncovered is None else uncovered * (1 - m)
+    recoloured += outside  # adds 0 (or -0) where no selection reaches: exactly ``outside``
     return recoloured
 
 

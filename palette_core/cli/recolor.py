@@ -6,9 +6,13 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
+
+from ..edit_file import check_edits_writable, read_edits, write_edits
+from ..errors import InputError
 from ..palette_file import read_palette_json
 from ..recolor import recolor_stack
-from ..selection import Selection, parse_near
+from ..selection import LocalEdit, Selection, parse_near
 from ..stack import read_stack
 from . import ArgumentParser, run_cli
 
@@ -19,9 +23,9 @@ def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog=PROG, description="Recolour every image of a weight stack "
                             "with an edited palette.")
     parser.add_argument("stack", help="weight stack (.npz or .zarr) from palette-decompose")
-    parser.add_argument("--palette", required=True,
+    parser.add_argument("--palette",
                         help='palette JSON: {"palette": ["#rrggbb", ...]}, as many colours as '
-                             "the stack's palette")
+                             "the stack's palette: everywhere, or inside the selection given")
     parser.add_argument("-o", "--output", required=True, metavar="DIR",
                         help="folder for the recoloured images (same names as the inputs)")
     parser.add_argument("--frames", action="store_true",
@@ -45,6 +49,12 @@ def build_parser() -> ArgumentParser:
                        help="RGB distance in [0, 1] for --select-near (default 0.1)")
     where.add_argument("--feather", type=float, default=0.0, metavar="PIXELS",
                        help="soften the selection's edge by a Gaussian of this many pixels")
+    where.add_argument("--edits", metavar="FILE",
+                       help="replay the local edits saved in FILE (a selection given as well "
+                            "stacks on top of them)")
+    where.add_argument("--save-edits", metavar="FILE",
+                       help="save the local edits (and copies of their masks, in "
+                            "FILE-stem.masks/) to replay them with --edits")
     return parser
 
 
@@ -53,17 +63,32 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args) -> int:
+    selected = args.mask or args.select_colour is not None or args.select_near
+    if args.palette is None and not (args.edits and not selected):
+        raise InputError("give --palette (with a selection: the colours inside it), or "
+                         "--edits FILE to replay saved edits")
     stack = read_stack(args.stack)
-    palette = read_palette_json(args.palette, k=len(stack.palette))
-    selection = None
-    if args.mask or args.select_colour is not None or args.select_near:
+    k = len(stack.palette)
+    palette = None if args.palette is None else read_palette_json(args.palette, k=k)
+    edits = read_edits(args.edits, stack) if args.edits else []
+    if selected:
         selection = Selection(mask=args.mask and Path(args.mask), colour=args.select_colour,
                               near=args.select_near and parse_near(args.select_near),
                               threshold=args.threshold, distance=args.distance,
                               feather=args.feather)
-    written = recolor_stack(stack, palette, args.output, args.force, args.frames, selection)
-    where = "" if selection is None else " (inside the selection only)"
+        edits.append(LocalEdit(selection, palette))
+        palette = None
+    if args.save_edits and not edits:
+        raise InputError("--save-edits needs a selection or --edits to save")
+    outside = np.asarray(stack.palette, np.float64) if palette is None else palette
+    if args.save_edits:  # before any work
+        check_edits_writable(Path(args.save_edits), edits, args.force)
+    written = recolor_stack(stack, outside, args.output, args.force, args.frames, edits)
+    where = f" ({len(edits)} local edit{'s' * (len(edits) > 1)})" if edits else ""
     print(f"wrote {len(written)} recoloured files to {args.output}{where}")
+    if args.save_edits:
+        write_edits(args.save_edits, stack, edits, args.force)
+        print(f"saved the local edits to {args.save_edits}")
     return 0
 
 
