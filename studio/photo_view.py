@@ -1,18 +1,25 @@
 """Photo mode of the page: the image on screen, letterboxed in every tab, a chooser and a
-thumbnail strip with a button under each thumbnail (``app.ModeView``)."""
+thumbnail strip with a button under each thumbnail, and local edits drawn on the image:
+a box (drag), brush dabs (click) or the colour under the eyedropper (click), inside which
+the palette edit applies (``app.ModeView``, ``drawing``)."""
 
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
 
+from palette_core.basis import weights_to_rgb
+
+from .drawing import Drawing
 from .photos import THUMBNAIL_PIXELS, PhotoTarget
 from .pictures import BACKDROP, bounded_aspect, letterbox
 
 STRIP = 7  # thumbnails around the current photo
 JPEG_QUALITY = 92
+TOOLS = ("everywhere", "box", "brush", "eyedropper")  # where an edit applies
 
 
 class PhotoView:
@@ -23,6 +30,8 @@ class PhotoView:
     def __init__(self, studio, target: PhotoTarget):
         self.studio, self.target = studio, target
         self.image = 0  # the image on screen
+        self.drawing = Drawing(target.size)
+        self.last_selection_ms = float("nan")
 
     def default_palette_path(self) -> Path:
         return self.target.path.with_name(f"{self.target.path.stem}_edited.json")
@@ -40,6 +49,26 @@ class PhotoView:
                                                       hint="open an image of the strip")
             self.strip_buttons.on_click(
                 lambda event: self.show_image(int(event.target.value.strip("[]")) - 1))
+        with gui.add_folder("Local edit"):
+            self.tool = gui.add_dropdown(
+                "edit applies", TOOLS, initial_value=TOOLS[0],
+                hint="box: drag over the image; brush: click to paint; eyedropper: click a "
+                     "colour. The palette edit then applies inside the selection only")
+            self.tool.on_update(lambda event: self._use_tool(event.target.value))
+            self.radius = gui.add_slider("brush radius", min=1, max=200, step=1,
+                                         initial_value=20, hint="image pixels")
+            self.feather = gui.add_slider("feather", min=0, max=50, step=1, initial_value=2,
+                                          hint="soft edge of boxes and dabs, image pixels")
+            self.distance = gui.add_slider("colour distance", min=0.01, max=0.5, step=0.01,
+                                           initial_value=0.1, hint="eyedropper: RGB distance")
+            gui.add_button("clear selection").on_click(lambda event: self._selected(
+                self.drawing.clear, "selection cleared: edits apply everywhere"))
+            self.edits_path = gui.add_text("edit file",
+                                           initial_value=str(self.default_edits_path()))
+            gui.add_button("save edit").on_click(lambda event: self.studio._write(
+                event.client, lambda force: self.drawing.save(
+                    self.edits_path.value, self.target.stack, self.studio.editor.palette,
+                    force)))
 
     def build_export_options(self, gui) -> None:
         """Nothing beyond the folder."""
@@ -64,7 +93,73 @@ class PhotoView:
 
     def export(self, client, path: str | os.PathLike, palette: np.ndarray,
                force: bool) -> list[Path]:
-        return self.target.export(path, palette, force)
+        return self.target.export(path, palette, force, self.drawing)
+
+    def default_edits_path(self) -> Path:
+        return self.target.path.with_name(f"{self.target.path.stem}_edit.json")
+
+    # Local edits ----------------------------------------------------------------------
+
+    def _use_tool(self, tool: str) -> None:
+        """Listen to the pointer for ``tool``: drags for boxes (which then no longer turn
+        the camera, which photo mode does not use), clicks for the brush and eyedropper."""
+        scene = self.studio.server.scene
+        scene.remove_rect_select_callback("all")  # photo mode registers no others
+        scene.remove_click_callback("all")
+        if tool == "box":
+            scene.on_rect_select()(self._boxed)
+        elif tool in ("brush", "eyedropper"):
+            scene.on_click()(self._clicked)
+
+    def _boxed(self, event) -> None:
+        corners = np.array([self._image_point(event.client, p)
+                            for p in (event.screen_min, event.screen_max)])
+        self._selected(lambda: self.drawing.box(self.image, corners, self.feather.value),
+                       "box selected: edits apply inside it")
+
+    def _clicked(self, event) -> None:
+        point = self._image_point(event.client, event.screen_pos)
+        if self.tool.value == "brush":
+            self._selected(lambda: self.drawing.dab(self.image, point, self.radius.value,
+                                                    self.feather.value),
+                           "painted: edits apply inside the brush strokes")
+            return
+        h, w = self.target.size(self.image)
+        x, y = np.clip(point.astype(int), 0, [w - 1, h - 1])
+        weights = np.asarray(self.target.stack.weights[self.image][y, x], np.float64)
+        stack = self.target.stack
+        colour = weights_to_rgb(weights, stack.palette, stack.basis, stack.order)
+
+        def pick() -> None:
+            self.drawing.clear()
+            self.drawing.near = (np.clip(colour, 0, 1), float(self.distance.value))
+
+        self._selected(pick, "colour picked: edits apply where the image is near it")
+
+    def _selected(self, change, message: str) -> None:
+        """Change the selection and redraw; ``last_selection_ms`` times both (the server's
+        part of a stroke)."""
+        with self.studio.lock:
+            start = time.perf_counter()
+            change()
+            self.studio.redraw()
+            self.last_selection_ms = 1000 * (time.perf_counter() - start)
+            self.studio.say(message)
+
+    def _drawing_shown(self) -> Drawing | None:
+        """The selection, unless the page shows the original (before/after)."""
+        return None if self.studio.before.value else self.drawing
+
+    def _image_point(self, client, screen) -> np.ndarray:
+        """(x, y) pixel of the image on screen (full size) under ``screen`` (fractions of the
+        viewport, from its top left), through the letterbox."""
+        h, w = self.target.weights(self.image).shape[:2]
+        aspect = bounded_aspect(client.camera)
+        width, height = max(w, round(h * aspect)), max(h, round(w / aspect))
+        x = screen[0] * width - (width - w) // 2
+        y = screen[1] * height - (height - h) // 2
+        full_h, full_w = self.target.size(self.image)
+        return np.array([x * full_w / w, y * full_h / h])
 
     def stop(self) -> None:
         """Nothing runs in the background."""
@@ -76,7 +171,8 @@ class PhotoView:
             self.redraw()
 
     def _show_photo(self, client) -> None:
-        image = self.target.view(self.image, self.studio.shown_palette)
+        image = self.target.view(self.image, self.studio.shown_palette,
+                                 drawing=self._drawing_shown())
         client.scene.set_background_image(letterbox(image, bounded_aspect(client.camera)),
                                           format="jpeg", jpeg_quality=JPEG_QUALITY)
 
@@ -97,8 +193,8 @@ class PhotoView:
         """Thumbnails of the images around the current one, the current one framed, and under
         them a button each that opens it (the current one marked)."""
         around = self._strip_images()
-        thumbs = [self.target.view(i, self.studio.shown_palette, THUMBNAIL_PIXELS)
-                  for i in around]
+        thumbs = [self.target.view(i, self.studio.shown_palette, THUMBNAIL_PIXELS,
+                                   self._drawing_shown()) for i in around]
         height = max(t.shape[0] for t in thumbs)
         tiles = []
         for i, thumb in zip(around, thumbs):

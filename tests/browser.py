@@ -77,7 +77,8 @@ def close_to(a, b, tolerance: int) -> bool:
 
 
 #: A watcher of the viewport's centre pixel, frame by frame: ``__studio.latency()`` is the
-#: time from the last Enter key to the first frame whose centre changed, in ms.
+#: time from the last Enter key or pointer release (a click, the end of a drag) to the first
+#: frame whose centre changed, in ms.
 _WATCH = """
 const canvas = [...document.querySelectorAll('canvas')]
     .sort((a, b) => b.width * b.height - a.width * a.height)[0];
@@ -86,6 +87,9 @@ const watch = {sent: null, changed: null, last: null};
 watch.latency = () => watch.changed === null ? null : watch.changed - watch.sent;
 document.addEventListener('keydown', event => {
     if (event.key === 'Enter') { watch.sent = performance.now(); watch.changed = null; }
+}, true);
+document.addEventListener('pointerup', () => {
+    watch.sent = performance.now(); watch.changed = null;
 }, true);
 function poll() {
     context.drawImage(canvas, canvas.width >> 1, canvas.height >> 1, 1, 1, 0, 0, 1, 1);
@@ -108,5 +112,38 @@ def watch_centre(driver) -> None:
 
 
 def change_latency(driver, timeout: float = 10.0) -> float | None:
-    """Milliseconds from the last Enter typed to the viewport's centre changing."""
+    """Milliseconds from the last Enter typed (or pointer released) to the viewport's centre
+    changing."""
     return wait_for(lambda: driver.execute_script("return window.__studio.latency()"), timeout)
+
+
+def viewport(driver):
+    """The viewport's canvas element (the largest canvas)."""
+    from selenium.webdriver.common.by import By
+
+    return max(driver.find_elements(By.TAG_NAME, "canvas"),
+               key=lambda c: c.size["width"] * c.size["height"])
+
+
+def drag(driver, start: tuple[float, float], end: tuple[float, float], steps: int = 10) -> None:
+    """Drag the mouse across the viewport between fractions of its width and height."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    canvas = viewport(driver)
+    w, h = canvas.size["width"], canvas.size["height"]
+    actions = ActionChains(driver).move_to_element_with_offset(
+        canvas, round((start[0] - 0.5) * w), round((start[1] - 0.5) * h)).click_and_hold()
+    for _ in range(steps):
+        actions.move_by_offset(round((end[0] - start[0]) * w / steps),
+                               round((end[1] - start[1]) * h / steps))
+    actions.release().perform()
+
+
+def click(driver, x: float = 0.5, y: float = 0.5) -> None:
+    """Click the viewport at fractions ``x``, ``y`` of its width and height."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    canvas = viewport(driver)
+    w, h = canvas.size["width"], canvas.size["height"]
+    ActionChains(driver).move_to_element_with_offset(
+        canvas, round((x - 0.5) * w), round((y - 0.5) * h)).click().perform()

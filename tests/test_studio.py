@@ -13,10 +13,12 @@ from palette_core.basis import weights_to_rgb  # noqa: E402
 from palette_core.cli.recolor import main as recolor  # noqa: E402
 from palette_core.errors import InputError, OutputExists  # noqa: E402
 from palette_core.palette_file import read_palette_json, write_palette_json  # noqa: E402
+from palette_core.selection import recolor_local  # noqa: E402
 from palette_core.stack import WeightStack, write_stack  # noqa: E402
 from studio import PaletteEditor  # noqa: E402
 from studio.app import Studio  # noqa: E402
 from studio.cli import main as studio_main  # noqa: E402
+from studio.drawing import Drawing  # noqa: E402
 from studio.photos import PhotoTarget, downsample  # noqa: E402
 from studio.pictures import letterbox, to_bytes  # noqa: E402
 
@@ -123,6 +125,45 @@ def test_photo_export_matches_palette_recolor(tmp_path, rng):
         assert path.read_bytes() == (tmp_path / "cli" / path.name).read_bytes()
     with pytest.raises(OutputExists):
         target.export(tmp_path / "studio", edited)
+
+
+def test_drawn_boxes_and_dabs_are_soft_masks_at_the_images_size():
+    drawing = Drawing(lambda i: (20, 30))
+    assert not drawing
+    drawing.box(0, np.array([[20.0, 15.0], [5.0, 4.0]]), feather=0)  # corners in any order
+    hard = drawing.masks[0]
+    assert hard.shape == (20, 30) and set(np.unique(hard)) == {0, 1}
+    assert hard[4:15, 5:20].all() and hard.sum() == 11 * 15
+    drawing.dab(1, np.array([10.0, 10.0]), radius=4, feather=2)
+    soft = drawing.masks[1]
+    assert soft[10, 10] == 1 and 0 < soft[10, 14] < 1 and soft[10, 17] == 0
+    assert soft.min() >= 0 and soft.max() <= 1
+    drawing.clear()
+    assert not drawing
+
+
+def test_a_drawn_edit_shows_exports_and_replays_as_the_library_makes_it(tmp_path, rng):
+    stack_path = tiny_stack(tmp_path / "w.npz", rng)
+    target = PhotoTarget.open(stack_path)
+    drawing = Drawing(target.size)
+    drawing.box(1, np.array([[2.0, 1.0], [9.0, 6.0]]), feather=1.5)
+    edited = PALETTE[::-1]
+    view = target.view(1, edited, drawing=drawing)
+    masks = tmp_path / "masks"
+    edits = drawing.local_edits(target.stack, edited, masks)
+    expected = recolor_local(np.asarray(target.stack.weights[1], np.float64), PALETTE, edits,
+                             target.names[1], target.stack.basis)
+    assert np.abs(view - np.clip(expected, 0, 1) * 255).max() <= 1.5  # masks kept at 8 bits
+    assert np.array_equal(target.view(0, edited, drawing=drawing), target.view(0, PALETTE))
+    written = drawing.save(tmp_path / "edit.json", target.stack, edited)
+    assert [p.name for p in written] == ["edit.json", "edit.masks"]
+    exported = target.export(tmp_path / "studio", edited, drawing=drawing)
+    assert recolor([str(stack_path), "--edits", str(tmp_path / "edit.json"), "-o",
+                    str(tmp_path / "cli")]) == 0
+    for path in exported:
+        assert path.read_bytes() == (tmp_path / "cli" / path.name).read_bytes()
+    with pytest.raises(InputError, match="nothing is selected"):
+        Drawing(target.size).save(tmp_path / "none.json", target.stack, edited)
 
 
 def test_letterbox_centres_the_image():

@@ -64,6 +64,34 @@ def test_photo_mode_recolours_live(driver, serve, tmp_path):
     assert browser.close_to(browser.pixel(driver, 0.05), left, TOLERANCE)
 
 
+def test_a_box_dragged_over_a_photo_edits_inside_it_only(driver, serve, tmp_path):
+    """The box tool: a drag over part of the left stripe; a new colour 1 shows inside the
+    box, the rest of the stripe keeps its colour; the saved edit replays it."""
+    weights = np.zeros((30, 60, 3), np.float32)
+    for j in range(3):
+        weights[:, 20 * j:20 * (j + 1), j] = 1
+    write_stack(WeightStack(PALETTE, [weights], ["stripes.png"], "mvc"), tmp_path / "w.npz")
+    studio = serve(PhotoTarget.open(tmp_path / "w.npz"))
+    driver.get(studio.url)
+    red = to_bytes(PALETTE[0])
+    assert browser.wait_for(lambda: browser.close_to(browser.pixel(driver, 0.15, 0.4), red,
+                                                     TOLERANCE))
+    studio.view.tool.value = "box"
+    time.sleep(1)  # the page learns that drags now select
+    browser.drag(driver, (0.05, 0.3), (0.3, 0.5))
+    assert browser.wait_for(lambda: studio.view.drawing.masks, timeout=10)
+    browser.type_colour(driver, "colour 1", "#ff00ff")
+    assert browser.wait_for(lambda: browser.close_to(browser.pixel(driver, 0.15, 0.4),
+                                                     (255, 0, 255), TOLERANCE), timeout=10)
+    assert browser.close_to(browser.pixel(driver, 0.15, 0.7), red, TOLERANCE)  # below the box
+    assert browser.close_to(browser.pixel(driver, 0.5, 0.4), to_bytes(PALETTE[1]), TOLERANCE)
+    mask = studio.view.drawing.masks[0]
+    assert mask[:, 45:].max() == 0 and mask[:, :10].max() == 1
+    written = studio.view.drawing.save(tmp_path / "edit.json", studio.target.stack,
+                                       studio.editor.palette)
+    assert [p.name for p in written] == ["edit.json", "edit.masks"]
+
+
 def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monkeypatch):
     """A tiny weight NeRF: once the view is refined, a typed colour gives exactly the
     recolouring of the cached weights."""
