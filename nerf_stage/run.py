@@ -200,10 +200,13 @@ class Run:
     def _pixel_samples(self, chunk, origins, directions, first_ray: int, first_pixel: int,
                        rays: int) -> PixelSamples:
         """The visible samples of a chunk of rays (from ray ``first_ray`` of a view whose
-        first pixel is ``first_pixel``, ``rays`` rays a pixel) above ``KEEP_WEIGHT``."""
+        first pixel is ``first_pixel``, ``rays`` rays a pixel) above ``KEEP_WEIGHT``, and each
+        ray's strongest (a foggy ray's samples may all lie below it)."""
         visible = chunk.visible()
         weight = visible.weight / rays
-        keep = weight >= KEEP_WEIGHT
+        strongest = torch.zeros(len(chunk.opacity), device=weight.device).scatter_reduce(
+            0, visible.ray, weight, "amax")  # each ray keeps at least its strongest sample
+        keep = weight >= torch.clamp(strongest[visible.ray], max=KEEP_WEIGHT)
         points = sample_positions(visible, self.occupancy, origins, directions)[keep]
         world = points.cpu().numpy().astype(np.float64) * self.box.scale + self.box.centre
         pixel = first_pixel + (first_ray + visible.ray[keep]).cpu().numpy() // rays

@@ -41,11 +41,12 @@ def palette_entry(palette: np.ndarray) -> dict:
     return {"palette": palette_to_hex(exact), "rgb": exact.tolist()}
 
 
-def write_palette_json(file, palette: np.ndarray) -> None:
-    """Write ``palette_entry(palette)`` to a path or text file object."""
-    entry = palette_entry(palette)
-    text = (f'{{\n  "palette": {json.dumps(entry["palette"])},\n'
-            f'  "rgb": {json.dumps(entry["rgb"])}\n}}\n')
+def write_palette_json(file, palette: np.ndarray, extra: dict | None = None) -> None:
+    """Write ``palette_entry(palette)``, and the keys of ``extra`` after it (a scene region,
+    for instance), to a path or text file object."""
+    entry = {**palette_entry(palette), **(extra or {})}
+    text = "{\n" + ",\n".join(f"  {json.dumps(k)}: {json.dumps(v)}" for k, v in entry.items())
+    text += "\n}\n"
     if hasattr(file, "write"):
         file.write(text)
     else:

@@ -54,6 +54,9 @@ class ModeView(Protocol):
     def build_export_options(self, gui) -> None:
         """Options of the export, between its path and its button."""
 
+    def saved_with_palette(self) -> dict:
+        """What *save palette* writes beside the colours (scene mode: the region)."""
+
     def connect(self, client) -> None:
         """A new tab: set its camera and show it."""
 
@@ -189,7 +192,8 @@ class Studio:
                                              initial_value=str(self.view.default_palette_path()))
             self.save_button = gui.add_button("save palette")
             self.save_button.on_click(lambda event: self._write(
-                event.client, lambda force: self.editor.save(self.palette_path.value, force)))
+                event.client, lambda force: self.editor.save(
+                    self.palette_path.value, force, self.view.saved_with_palette())))
             self.export_path = gui.add_text(self.view.export_label,
                                             initial_value=str(self.target.default_export()))
             self.view.build_export_options(gui)

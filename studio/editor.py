@@ -79,13 +79,14 @@ class PaletteEditor:
     def can_undo(self) -> bool:
         return bool(self._history)
 
-    def save(self, path: str | os.PathLike, force: bool = False) -> list[Path]:
-        """Write the palette as JSON (docs/formats.md), atomically; an existing file only
-        with ``force``. Returns the file written."""
+    def save(self, path: str | os.PathLike, force: bool = False,
+             extra: dict | None = None) -> list[Path]:
+        """Write the palette as JSON (docs/formats.md), with the keys of ``extra`` beside it,
+        atomically; an existing file only with ``force``. Returns the file written."""
         path = Path(path)
         if path.suffix != ".json":
             raise InputError(f"a palette file ends in .json, got {path}")
         check_writable([path], force)
         with atomic_outputs(force) as stage:
-            write_palette_json(stage(path), self.palette)
+            write_palette_json(stage(path), self.palette, extra)
         return [path]

@@ -95,6 +95,10 @@ class PhotoView:
                force: bool) -> list[Path]:
         return self.target.export(path, palette, force, self.drawing)
 
+    def saved_with_palette(self) -> dict:
+        """The selection is saved apart (*save edit*)."""
+        return {}
+
     def default_edits_path(self) -> Path:
         return self.target.path.with_name(f"{self.target.path.stem}_edit.json")
 

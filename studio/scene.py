@@ -1,8 +1,8 @@
 """Scene mode: a trained weight NeRF rendered from the browser's camera.
 
-The network runs once per camera view and resolution; the weights are cached,
-and a palette change recolours them (``nerf_stage.editing.WeightRender``) without
-running it again.
+The network runs once per camera view and resolution; the weights are cached with the
+samples behind each pixel, and a palette change, or a region moved (``nerf_stage.regions``),
+recolours them (``nerf_stage.editing.WeightRender``) without running it again.
 """
 
 from __future__ import annotations
@@ -19,11 +19,20 @@ from harmonize import palette_shares
 from nerf_stage.cameras import Intrinsics, look_at, turntable_poses
 from nerf_stage.editing import WeightRender, render_weights, write_gif
 from nerf_stage.fields import RGB
+from nerf_stage.regions import Region
 from nerf_stage.run import Run, load_run
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
 
 CACHED_VIEWS = 32
+
+
+def recoloured(render: WeightRender, palette: np.ndarray, regions: list[Region]) -> np.ndarray:
+    """(N, H, W, 3) ``render`` recoloured with ``palette``, inside ``regions`` only (the run's
+    own palette outside) when there are any."""
+    if not regions:
+        return render.recolor(palette)
+    return render.with_regions(regions).recolor(render.palette, inside=palette)
 SHARE_VIEWS, SHARE_SIZE = 8, 32  # the low-resolution turntable that harmonisation weighs
 MAX_TURNTABLE = 360
 
@@ -88,12 +97,13 @@ class SceneTarget:
         return Intrinsics(width, height, focal, focal, width / 2, height / 2)
 
     def render(self, pose: np.ndarray, intrinsics: Intrinsics) -> WeightRender:
-        """The weights of one view (cached by pose and camera)."""
+        """The weights of one view and the samples behind its pixels (cached by pose and
+        camera)."""
         key = (np.round(pose, 6).tobytes(), intrinsics.width, intrinsics.height)
         with self._lock:
             if key not in self._views:
                 self._views[key] = render_weights(self.run, ["view"], pose[None], {}, False,
-                                                  intrinsics)
+                                                  intrinsics, samples=True)
                 if len(self._views) > CACHED_VIEWS:
                     self._views.popitem(last=False)
             self._views.move_to_end(key)
@@ -110,8 +120,10 @@ class SceneTarget:
         return self.path / "turntable.gif"
 
     def export(self, path: str | os.PathLike, palette: np.ndarray, pose: np.ndarray,
-               intrinsics: Intrinsics, views: int = 36, force: bool = False) -> list[Path]:
-        """A turntable GIF of ``views`` frames from ``pose``, recoloured with ``palette``."""
+               intrinsics: Intrinsics, views: int = 36, force: bool = False,
+               regions: list[Region] = ()) -> list[Path]:
+        """A turntable GIF of ``views`` frames from ``pose``, recoloured with ``palette``
+        (inside ``regions`` only, when given)."""
         path = Path(path)
         if path.suffix.lower() != ".gif":
             raise InputError(f"a turntable is written as .gif, got {path}")
@@ -119,7 +131,8 @@ class SceneTarget:
             raise InputError(f"a turntable has 1 to {MAX_TURNTABLE} views, got {views}")
         check_writable([path], force)
         poses = turntable_poses(pose, self.centre, views)
-        frames = np.concatenate([self.render(p, intrinsics).recolor(palette) for p in poses])
+        frames = np.concatenate([recoloured(self.render(p, intrinsics), palette, regions)
+                                 for p in poses])
         with atomic_outputs(force) as stage:
             write_gif(stage(path), frames)
         return [path]

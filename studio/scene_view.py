@@ -1,6 +1,8 @@
 """Scene mode of the page: every tab's viewport renders the weight NeRF from its own camera,
 coarse while it moves and at the training resolution once it stops, and recolours the
-cached weights on palette edits without the network (``app.ModeView``)."""
+cached weights on palette edits without the network (``app.ModeView``). A box region,
+placed with a gizmo and sized in the panel, keeps the edit inside it; moving it recolours
+without the network too (``nerf_stage.regions``)."""
 
 from __future__ import annotations
 
@@ -11,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from nerf_stage.regions import Region
+
 from .pictures import bounded_aspect, camera_pose, to_bytes
-from .scene import MAX_TURNTABLE, SceneTarget
+from .scene import MAX_TURNTABLE, SceneTarget, recoloured
 
 PREVIEW_ROWS = 24  # rows of a scene view while the camera moves
 SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
@@ -31,7 +35,39 @@ class SceneView:
         return self.target.path / "edited_palette.json"
 
     def build_panel(self, gui) -> None:
-        """The camera is the browser's: no panel of its own."""
+        """The region: on or off, and its size; its gizmo moves it in the scene."""
+        size = np.ptp(self.target.bounds, 0) / 4
+        with gui.add_folder("Region"):
+            self.local = gui.add_checkbox(
+                "edit inside the box", initial_value=False,
+                hint="the palette edit applies inside the box only; drag its gizmo to move it")
+            self.size = gui.add_vector3("box size", initial_value=tuple(size.round(3)),
+                                        min=(1e-3,) * 3, step=0.01)
+        scene = self.studio.server.scene
+        self.gizmo = scene.add_transform_controls(
+            "/region", scale=float(size.max()), disable_rotations=True,
+            position=tuple(self.target.centre), visible=False)
+        self.box = scene.add_box("/region/box", color=(255, 204, 51), dimensions=tuple(size),
+                                 wireframe=True, visible=False)
+        for control in (self.local, self.size, self.gizmo):
+            control.on_update(lambda event: self._region_changed())
+
+    def region(self) -> Region | None:
+        """The box the edit applies inside, when it is on."""
+        if not self.local.value:
+            return None
+        size = np.maximum(np.asarray(self.size.value, np.float64), 1e-3)
+        return Region("box", tuple(map(float, self.gizmo.position)), tuple((size / 2).tolist()))
+
+    def saved_with_palette(self) -> dict:
+        region = self.region()
+        return {} if region is None else {"regions": [region.to_dict()]}
+
+    def _region_changed(self) -> None:
+        with self.studio.lock:
+            self.gizmo.visible = self.box.visible = bool(self.local.value)
+            self.box.dimensions = tuple(np.maximum(self.size.value, 1e-3))
+            self.studio.redraw()
 
     def build_export_options(self, gui) -> None:
         self.turntable_views = gui.add_number("turntable views", initial_value=36, min=1,
@@ -44,7 +80,7 @@ class SceneView:
         client.camera.position = pose[:3, 3]
         client.camera.look_at = self.target.centre
         self.open_viewports()
-        self.viewports[client.client_id] = Viewport(self.studio, self.target, client)
+        self.viewports[client.client_id] = Viewport(self.studio, self, client)
 
     def redraw(self) -> None:
         for viewport in self.open_viewports():
@@ -53,8 +89,10 @@ class SceneView:
     def export(self, client, path: str | os.PathLike, palette: np.ndarray,
                force: bool) -> list[Path]:
         viewport = self.viewports[client.client_id]
+        region = self.region()
         return self.target.export(path, palette, camera_pose(client.camera),
-                                  viewport.intrinsics(), int(self.turntable_views.value), force)
+                                  viewport.intrinsics(), int(self.turntable_views.value), force,
+                                  [] if region is None else [region])
 
     def stop(self) -> None:
         for viewport in list(self.viewports.values()):
@@ -73,8 +111,8 @@ class Viewport:
     camera moves and at the training resolution once it stops; recolours without the
     network on palette changes."""
 
-    def __init__(self, studio, target: SceneTarget, client):
-        self.studio, self.target, self.client = studio, target, client
+    def __init__(self, studio, view: SceneView, client):
+        self.studio, self.view, self.target, self.client = studio, view, view.target, client
         self.render = None  # the WeightRender on screen
         self.drawn = (0, 0.0)  # rows of the last view drawn, and when (time.perf_counter)
         self.moved = threading.Event()
@@ -115,5 +153,7 @@ class Viewport:
     def recolour(self) -> None:
         if self.render is None:
             return
-        image = self.render.recolor(self.studio.shown_palette)[0]
+        region = None if self.studio.before.value else self.view.region()
+        image = recoloured(self.render, self.studio.shown_palette,
+                           [] if region is None else [region])[0]
         self.client.scene.set_background_image(to_bytes(image), format="png")

@@ -68,12 +68,17 @@ def test_bad_region_files_are_one_clear_error(tmp_path, content, message):
         read_regions(path)
 
 
-def test_shares_weigh_each_pixels_samples():
-    samples = PixelSamples(np.array([0, 0, 1, 3]), np.array(
-        [[0, 0, 0], [5, 0, 0], [5, 0, 0], [0, 0, 0]], np.float32),
-        np.array([0.3, 0.1, 0.5, 0.2], np.float32))
+def test_shares_weigh_the_first_half_of_each_pixels_light():
+    inside, outside = [0, 0, 0], [5, 0, 0]
+    samples = PixelSamples(  # given out of pixel order, in marching order within a pixel
+        np.array([3, 0, 0, 1, 1, 3]),
+        np.array([inside, outside, inside, inside, outside, outside], np.float32),
+        np.array([0.2, 0.1, 0.3, 0.6, 0.4, 0.3], np.float32))
     share = samples.shares([Region("box", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))], (1, 2, 2))
-    assert np.allclose(share, [[[0.75, 0.0], [0.0, 1.0]]])  # pixel 2 has no samples
+    # pixels 0 and 3: both samples bring some of the first half (the second crosses it);
+    # pixel 1: what leaks through behind its first does not count; pixel 2 has no samples
+    assert np.allclose(share, [[[0.75, 1.0], [0.0, 0.4]]])
+    assert samples.pixel.tolist() == [0, 0, 1, 1, 3, 3]
 
 
 # --- region edits of a render ----------------------------------------------------------------
@@ -107,7 +112,8 @@ def test_a_region_splits_the_weights_exactly(sampled, rng):
     assert np.array_equal(nowhere.recolor(inside=edit), render.recolor())  # bit for bit
     everywhere = render.with_regions([EVERYWHERE])
     assert np.allclose(everywhere.recolor(inside=edit), render.recolor(edit), atol=1e-6)
-    half = render.with_regions([Region("box", tuple(run.box.centre), (10.0, 10.0, 1e-3 + 0.0))])
+    right = run.box.centre + [5.0, 0.0, 0.0]  # the half of space beyond the centre's x
+    half = render.with_regions([Region("box", tuple(right), (5.0, 10.0, 10.0))])
     outside = render.weights - half.inside
     assert (half.inside >= 0).all() and (outside >= -1e-7).all()
     assert np.allclose(half.inside + outside, render.weights)

@@ -130,6 +130,26 @@ def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monk
     assert browser.wait_for(shows_the_recolouring, timeout=10), (browser.pixel(driver), low, high)
     assert not calls  # recoloured from the cached weights
 
+    # a region far from everything keeps the edit out of the view; one around the scene
+    # lets it in again; neither runs the network
+    view = studio.view
+    def unobstructed():  # the gizmo sits over the pixel read
+        view.gizmo.visible = view.box.visible = False
+        return shows_the_recolouring()
+
+    view.gizmo.position = tuple(studio.target.centre + 100.0)  # as a drag of the gizmo would
+    view.size.value = (0.01, 0.01, 0.01)
+    view.local.value = True
+    original = to_bytes(render.recolor()[0][centre]).reshape(-1, 3)
+    low, high = original.min(0).astype(int) - 3, original.max(0).astype(int) + 3
+    assert browser.wait_for(unobstructed, timeout=10), (browser.pixel(driver), low, high)
+    view.gizmo.position = tuple(studio.target.centre)
+    view.size.value = tuple(np.ptp(studio.target.bounds, 0) * 4)
+    low, high = block.min(0).astype(int) - 3, block.max(0).astype(int) + 3
+    assert browser.wait_for(unobstructed, timeout=10), (browser.pixel(driver), low, high)
+    assert not calls
+    assert view.saved_with_palette()["regions"][0]["shape"] == "box"
+
 
 @pytest.fixture
 def attacker_site(tmp_path):
