@@ -5,9 +5,11 @@ bench_collection.py) decomposed with K = 6. Scene mode: a trained weight NeRF
 (default `demo_out/nerf/run` from `make demo`, 100x100 views). For each, a colour
 is typed into the panel N times (alternating between the dominant colour of the
 viewport's centre and its complement) and the page times, frame by frame, Enter to
-the first frame whose centre pixel changed (tests/browser.py). Scene mode also
-times a camera move to the refined view sent to the browser. Saves a screenshot of
-each mode.
+the first frame whose centre pixel changed (tests/browser.py). Photo mode also times brush
+dabs: with colour 1 edited inside a small dab in a corner, a dab clicked at the centre,
+from the click's release to the first frame whose centre changed, and the server's part
+(the dab painted, the image recoloured and sent). Scene mode also times a camera move to
+the refined view sent to the browser. Saves a screenshot of each mode.
 
     python benchmarks/bench_studio.py [--run demo_out/nerf/run] [--out benchmarks/out] [-n 20]
                                       [--window 1280x800]
@@ -15,7 +17,8 @@ each mode.
 Software WebGL (SwiftShader) draws every frame on the CPU, so the browser's share
 of the latency grows with the window; the server's share is printed apart.
 
-Targets (issue 17): photo <= 100 ms, scene view <= 50 ms, refined view <= 1 s.
+Targets (issue 17): photo <= 100 ms, scene view <= 50 ms, refined view <= 1 s; (issue 41)
+a brush dab no slower than a palette edit, its server part <= 50 ms.
 """
 
 from __future__ import annotations
@@ -75,6 +78,43 @@ def time_edits(driver, studio: Studio, index: int, n: int) -> tuple[list[float],
     return page, server
 
 
+def time_dabs(driver, studio: Studio, index: int, n: int) -> tuple[list[float], ...]:
+    """Brush dabs at the centre, n times, each after the selection was reset to a dab in a
+    corner (colour ``index`` edited to its complement); browser latencies, the server's part,
+    and the time from asking selenium for the click to its arrival at the server (ms)."""
+    view = studio.view
+    arrived = []
+    clicked = view._clicked
+
+    def arrival(event) -> None:
+        arrived.append(time.perf_counter())
+        clicked(event)
+
+    view._clicked = arrival  # registered by the tool below
+    complement = to_bytes(1 - studio.editor.palette[index])
+    browser.type_colour(driver, f"colour {index + 1}", "#{:02x}{:02x}{:02x}".format(*complement))
+    view.tool.value = "brush"
+    time.sleep(1)  # the page learns that clicks now paint
+    page, server, to_server = [], [], []
+    for _ in range(n):
+        with studio.lock:
+            view.drawing.clear()
+            view.drawing.dab(view.image, np.array([5.0, 5.0]), 4, 0)
+            studio.redraw()
+        time.sleep(0.5)
+        browser.watch_centre(driver)
+        start = time.perf_counter()
+        browser.click(driver, 0.5, 0.5)
+        latency = browser.change_latency(driver)
+        if latency is None:
+            raise RuntimeError("the viewport did not change within 10 s")
+        page.append(latency)
+        server.append(view.last_selection_ms)
+        to_server.append(1000 * (arrived[-1] - start))
+    view.tool.value = "everywhere"
+    return page, server, to_server
+
+
 def summary(name: str, values: list[float], target: float | None = None) -> str:
     values = np.asarray(values)
     line = (f"{name:<44} median {np.median(values):7.1f}   p90 {np.percentile(values, 90):7.1f}"
@@ -94,6 +134,10 @@ def bench_photos(driver, out: Path, n: int) -> None:
         h, w = target.weights(0).shape[:2]
         print(summary(f"photo {w}x{h}: change -> new frame (ms)", page, 100))
         print(summary("  of which server recolour + encode (ms)", server))
+        page, server, to_server = time_dabs(driver, studio, index, n)
+        print(summary(f"photo {w}x{h}: brush dab -> new frame (ms)", page))
+        print(summary("  selenium click -> at the server (ms)", to_server))
+        print(summary("  server paint + recolour + encode (ms)", server, 50))
         driver.save_screenshot(str(out / "studio_photos.png"))
     finally:
         studio.stop()
