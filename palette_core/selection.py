@@ -120,15 +120,20 @@ def recolor_local(weights: np.ndarray, palette: np.ndarray, edits: list[LocalEdi
     """
     outside = weights_to_rgb(weights, palette, basis, order)
     base = basis_terms(palette, basis, order)
-    recoloured = np.zeros_like(outside)
-    uncovered = None  # prod (1 - m_j) over the edits above
-    for edit in reversed(edits):
+    recoloured = uncovered = None  # uncovered: prod (1 - m_j) over the edits above
+    for i, edit in enumerate(reversed(edits)):
         m = edit.selection.values(name, weights, outside, basis)
         share = m if uncovered is None else m * uncovered
         change = weights @ (basis_terms(edit.palette, basis, order) - base)
         change *= share[..., None]
-        recoloured += change
-        uncovered = 1 - m if uncovered is None else uncovered * (1 - m)
+        if recoloured is None:
+            recoloured = change
+        else:
+            recoloured += change
+        if i + 1 < len(edits):
+            uncovered = 1 - m if uncovered is None else uncovered * (1 - m)
+    if recoloured is None:
+        return outside
     recoloured += outside  # adds 0 (or -0) where no selection reaches: exactly ``outside``
     return recoloured
 
