@@ -21,7 +21,6 @@ scores 31.9 to 32.4 dB, and the median sample alone 32.0 to 32.7 dB.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from palette_core.errors import InputError
+from palette_core.json_file import read_json
 
 SHAPES = ("box", "ellipsoid")
 #: Samples below this compositing weight are not kept (``PixelSamples``), but for each ray's
@@ -127,13 +127,8 @@ def read_regions(path: str | os.PathLike) -> list[Region]:
     """The regions of a JSON file: ``{"regions": [{"shape", "centre", "half"}, ...]}`` (a
     palette file the studio saved holds them beside its colours; docs/formats.md)."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"region file {path} does not exist (a region is "
-                         "box:x0,y0,z0,x1,y1,z1, ellipsoid:cx,cy,cz,rx,ry,rz or a file)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise InputError(f"region file {path} is not valid JSON: {exc}") from None
+    data = read_json(path, "region file", " (a region is box:x0,y0,z0,x1,y1,z1, "
+                     "ellipsoid:cx,cy,cz,rx,ry,rz or a file)")
     regions = data.get("regions") if isinstance(data, dict) else None
     if not isinstance(regions, list) or not regions:
         raise InputError(f"region file {path} must hold {{\"regions\": [regions...]}}")

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .json_file import read_json
 from .outputs import atomic_outputs, check_outdir, check_writable, inside, publish_folder
 from .palette_file import palette_entry, palette_to_hex, parse_palette
 from .selection import LocalEdit, Selection, parse_near
@@ -112,12 +113,7 @@ def read_edits(path: str | os.PathLike, stack: WeightStack) -> list[LocalEdit]:
         leaves its folder or does not exist.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"edit file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise InputError(f"edit file {path} is not valid JSON: {exc}") from None
+    data = read_json(path, "edit file")
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{path} is not an edit file (format {FORMAT})")
     made_for, ours = data.get("stack"), stack_identity(stack)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .json_file import read_json
 
 _HEX = re.compile(r"^#?([0-9a-fA-F]{6})$")
 
@@ -63,12 +64,7 @@ def read_palette_json(path: str | os.PathLike, k: int | None = None) -> np.ndarr
         [0, 1], or ``k`` is given and the palette has another length.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"palette file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise InputError(f"palette file {path} is not valid JSON: {exc}") from None
+    data = read_json(path, "palette file")
     return parse_palette(data, f"palette file {path}", k)
 
 

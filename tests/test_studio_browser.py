@@ -46,13 +46,19 @@ def serve():
         studio.stop()
 
 
-def test_photo_mode_recolours_live(driver, serve, tmp_path):
-    """Three stripes, one palette colour each: typing a new colour 2 recolours the middle."""
+@pytest.fixture
+def stripes(tmp_path):
+    """A stack of one 60 x 30 image of three stripes, one palette colour each."""
     weights = np.zeros((30, 60, 3), np.float32)
     for j in range(3):
         weights[:, 20 * j:20 * (j + 1), j] = 1
     write_stack(WeightStack(PALETTE, [weights], ["stripes.png"], "mvc"), tmp_path / "w.npz")
-    studio = serve(PhotoTarget.open(tmp_path / "w.npz"))
+    return PhotoTarget.open(tmp_path / "w.npz")
+
+
+def test_photo_mode_recolours_live(driver, serve, stripes):
+    """Three stripes, one palette colour each: typing a new colour 2 recolours the middle."""
+    studio = serve(stripes)
     driver.get(studio.url)
     middle = to_bytes(PALETTE[1])
     assert browser.wait_for(lambda: browser.close_to(browser.pixel(driver), middle, TOLERANCE))
@@ -64,14 +70,10 @@ def test_photo_mode_recolours_live(driver, serve, tmp_path):
     assert browser.close_to(browser.pixel(driver, 0.05), left, TOLERANCE)
 
 
-def test_a_box_dragged_over_a_photo_edits_inside_it_only(driver, serve, tmp_path):
+def test_a_box_dragged_over_a_photo_edits_inside_it_only(driver, serve, stripes, tmp_path):
     """The box tool: a drag over part of the left stripe; a new colour 1 shows inside the
-    box, the rest of the stripe keeps its colour; the saved edit replays it."""
-    weights = np.zeros((30, 60, 3), np.float32)
-    for j in range(3):
-        weights[:, 20 * j:20 * (j + 1), j] = 1
-    write_stack(WeightStack(PALETTE, [weights], ["stripes.png"], "mvc"), tmp_path / "w.npz")
-    studio = serve(PhotoTarget.open(tmp_path / "w.npz"))
+    box, the rest of the stripe keeps its colour; the edit saves."""
+    studio = serve(stripes)
     driver.get(studio.url)
     red = to_bytes(PALETTE[0])
     assert browser.wait_for(lambda: browser.close_to(browser.pixel(driver, 0.15, 0.4), red,
