@@ -139,9 +139,11 @@ def _add_render(commands) -> None:
                              f"{BAKE_FACTOR}) times finer than the field's (grid runs "
                              "with per-sample diffuse colours: no network, faster)")
     render.add_argument("--region", action="append", default=[], metavar="REGION",
-                        help="apply the palettes inside this region only (world coordinates; "
-                             "repeatable): box:x0,y0,z0,x1,y1,z1, ellipsoid:cx,cy,cz,rx,ry,rz "
-                             "or a JSON file with \"regions\" (docs/selections.md)")
+                        help="apply the palettes inside this region only (repeatable; a pixel "
+                             "in any is in): box:x0,y0,z0,x1,y1,z1 or ellipsoid:cx,cy,cz,rx,ry,rz "
+                             "in world coordinates, colour:K[,T] (the pixels whose weight for "
+                             "palette colour K is at least T, 0.5), or a JSON file with "
+                             "\"regions\" (docs/selections.md)")
     render.add_argument("-o", "--output", required=True, metavar="DIR")
     render.add_argument("--force", action="store_true",
                         help="overwrite existing outputs (and a render.npz of other views)")

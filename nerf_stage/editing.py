@@ -28,7 +28,7 @@ from palette_core.swatch import palette_swatch
 
 from .cameras import Intrinsics, orbit_poses
 from .fields import RGB
-from .regions import PixelSamples, Region
+from .regions import ColourRegion, PixelSamples, Region, region_from_dict
 from .run import Run, load_run
 
 RENDER_FILE = "render.npz"
@@ -58,7 +58,7 @@ class WeightRender:
         and views: what the render came from.
     samples : regions.PixelSamples or None
         Where each pixel's light comes from, kept to split the weights by regions.
-    regions : list of regions.Region
+    regions : list of regions.Region or regions.ColourRegion
     inside : (N, H, W, M) float32 or None
         The part of ``weights`` inside the regions (``regions`` module), when there are any.
     """
@@ -72,7 +72,7 @@ class WeightRender:
     background: np.ndarray
     source: dict
     samples: PixelSamples | None = None
-    regions: list[Region] = field(default_factory=list)
+    regions: list[Region | ColourRegion] = field(default_factory=list)
     inside: np.ndarray | None = None
 
     def recolor(self, palette: np.ndarray | None = None,
@@ -99,18 +99,26 @@ class WeightRender:
                              f"got {palette.shape}")
         return palette
 
-    def with_regions(self, regions: list[Region]) -> WeightRender:
-        """This render with its weights split by ``regions`` (no network: its samples).
+    def with_regions(self, regions: list[Region | ColourRegion]) -> WeightRender:
+        """This render with its weights split by ``regions`` (no network: its samples, and
+        its weights for colour regions); a pixel in any region is in.
 
         Raises
         ------
         InputError
-            If the render kept no samples (rendered without regions, or format version 1).
+            If a box or ellipsoid is given and the render kept no samples (rendered without
+            regions, or format version 1), or a colour region names a colour the run lacks.
         """
-        if self.samples is None:
+        places = [r for r in regions if isinstance(r, Region)]
+        if places and self.samples is None:
             raise InputError("this render kept no samples to split by regions: render it "
                              "again with --region")
-        share = self.samples.shares(regions, self.opacity.shape)
+        share = (self.samples.shares(places, self.opacity.shape) if places
+                 else np.zeros(self.opacity.shape, np.float32))
+        for region in regions:
+            if isinstance(region, ColourRegion):
+                region.selection().check(len(self.palette))
+                share = np.maximum(share, region.values(self.weights, self.opacity, self.basis))
         return replace(self, regions=list(regions), inside=self.weights * share[..., None])
 
     def as_stack(self) -> WeightStack:
@@ -186,7 +194,7 @@ def read_render(path: str | os.PathLike) -> WeightRender:
                                 npz.array("sample_weight", "f"))
                    if "sample_pixel" in npz else None)
         inside = npz.array("inside", "f") if "inside" in npz else None
-        regions = ([Region.from_dict(r, str(path)) for r in _listed(npz.json("regions"), path)]
+        regions = ([region_from_dict(r, str(path)) for r in _listed(npz.json("regions"), path)]
                    if inside is not None else [])
     check_names(names, str(path))
     n = len(names)
@@ -243,7 +251,8 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
                  palette_files: list[str] = (), templates: list[str] = (),
                  split: str = "test", orbit: int | None = None,
                  force: bool = False, progress: bool = True,
-                 baked: int | None = None, regions: list[Region] = ()) -> EditedRenders:
+                 baked: int | None = None,
+                 regions: list[Region | ColourRegion] = ()) -> EditedRenders:
     """Render a run's weights once into ``out/render.npz`` and recolour them.
 
     One folder per palette file (``out/<file stem>``), per harmonisation template
@@ -272,6 +281,9 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
                          f"{BEST}, {', '.join(TEMPLATES)}")
     if regions and not (palette_files or templates):
         raise InputError("a region needs a palette to apply inside it (--palette or --harmonize)")
+    for region in regions:
+        if isinstance(region, ColourRegion):
+            region.selection().check(len(run.palette))
     palettes = {} if palette_files or templates else {"original": run.palette}
     for path in palette_files:
         label = Path(path).stem
@@ -295,14 +307,15 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     existing = [str(path) for path in outputs if path.exists()]
     if existing and not force:
         raise OutputExists(f"output {existing[0]} already exists (use --force to overwrite)")
+    places = any(isinstance(region, Region) for region in regions)
     reused = (render is not None and render.source == source
-              and (render.samples is not None or not regions))
+              and (render.samples is not None or not places))
     if not reused:
         dataset = run.dataset()
         names, poses, cameras = render_poses(run, dataset, split, orbit)
         renderer = run if baked is None else run.baked(baked)
         render = render_weights(renderer, names, poses, source, progress, cameras,
-                                samples=bool(regions))
+                                samples=places)
     if regions:
         render = render.with_regions(regions)
     if not reused or regions:

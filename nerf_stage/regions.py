@@ -30,8 +30,9 @@ import numpy as np
 
 from palette_core.errors import InputError
 from palette_core.json_file import read_json
+from palette_core.selection import Selection
 
-SHAPES = ("box", "ellipsoid")
+SHAPES = ("box", "ellipsoid", "colour")
 #: Samples below this compositing weight are not kept (``PixelSamples``), but for each ray's
 #: strongest: together they hold a negligible share of any pixel that is not all fog.
 KEEP_WEIGHT = 1e-3
@@ -54,7 +55,7 @@ class Region:
     half: tuple[float, float, float]
 
     def __post_init__(self):
-        if self.shape not in SHAPES:
+        if self.shape not in SHAPES[:2]:
             raise InputError(f"unknown region shape {self.shape!r}; choose one of "
                              f"{', '.join(SHAPES)}")
         numbers = (*self.centre, *self.half)
@@ -84,21 +85,58 @@ class Region:
     def to_dict(self) -> dict:
         return {"shape": self.shape, "centre": list(self.centre), "half": list(self.half)}
 
-    @classmethod
-    def from_dict(cls, data, where: str) -> Region:
-        """The region of ``to_dict``, from a file named by ``where``; InputError if malformed."""
-        if not isinstance(data, dict) or set(data) != {"shape", "centre", "half"}:
-            raise InputError(f"{where}: a region is {{\"shape\", \"centre\", \"half\"}}, got "
-                             f"{data!r}")
-        centre, half = data["centre"], data["half"]
-        if not (isinstance(centre, list) and isinstance(half, list)):
-            raise InputError(f"{where}: a region's centre and half are lists of 3 numbers")
-        return cls(data["shape"], tuple(centre), tuple(half))
+
+@dataclass(frozen=True)
+class ColourRegion:
+    """A weight-space selection, as in photos (``palette_core.selection``): the pixels whose
+    weight for palette colour ``colour`` (its first-order term for transport weights), divided
+    by the pixel's opacity, is at least ``threshold``."""
+
+    colour: int
+    threshold: float = 0.5
+    shape = "colour"
+
+    def __post_init__(self):
+        if not isinstance(self.colour, int) or isinstance(self.colour, bool):
+            raise InputError(f"a colour region names a palette colour by its index, got "
+                             f"{self.colour!r}")
+        self.selection()  # checks the threshold
+
+    def selection(self) -> Selection:
+        return Selection(colour=self.colour, threshold=self.threshold)
+
+    def values(self, weights: np.ndarray, opacity: np.ndarray, basis) -> np.ndarray:
+        """(N, H, W) 0 or 1 for views of (N, H, W, M) ``weights`` premultiplied by their
+        (N, H, W) ``opacity``."""
+        straight = weights / np.maximum(opacity, 1e-6)[..., None]
+        selection = self.selection()
+        return np.stack([selection.values("view", w, None, basis) for w in straight])
+
+    def to_dict(self) -> dict:
+        return {"shape": self.shape, "colour": self.colour, "threshold": self.threshold}
 
 
-def parse_region(text: str) -> list[Region]:
+def region_from_dict(data, where: str) -> Region | ColourRegion:
+    """The region of a ``to_dict``, from a file named by ``where``; InputError if malformed."""
+    if isinstance(data, dict) and data.get("shape") == ColourRegion.shape:
+        if not set(data) <= {"shape", "colour", "threshold"} or "colour" not in data:
+            raise InputError(f"{where}: a colour region is {{\"shape\", \"colour\", "
+                             f"\"threshold\"}}, got {data!r}")
+        return ColourRegion(data["colour"], data.get("threshold", 0.5))
+    if not isinstance(data, dict) or set(data) != {"shape", "centre", "half"}:
+        raise InputError(f"{where}: a region is {{\"shape\", \"centre\", \"half\"}}, got "
+                         f"{data!r}")
+    centre, half = data["centre"], data["half"]
+    if not (isinstance(centre, list) and isinstance(half, list)):
+        raise InputError(f"{where}: a region's centre and half are lists of 3 numbers")
+    return Region(data["shape"], tuple(centre), tuple(half))
+
+
+def parse_region(text: str) -> list[Region | ColourRegion]:
     """Regions from the command line: ``box:x0,y0,z0,x1,y1,z1`` (two corners),
-    ``ellipsoid:cx,cy,cz,rx,ry,rz`` (centre and radii), or a JSON file (``read_regions``).
+    ``ellipsoid:cx,cy,cz,rx,ry,rz`` (centre and radii), ``colour:K`` or ``colour:K,T``
+    (palette colour K's weight at least T, 0.5 by default), or a JSON file
+    (``read_regions``).
 
     Raises
     ------
@@ -110,12 +148,17 @@ def parse_region(text: str) -> list[Region]:
         return read_regions(text)
     if shape not in SHAPES:
         raise InputError(f"unknown region shape {shape!r} in {text!r}; choose one of "
-                         f"{', '.join(SHAPES)} (box:x0,y0,z0,x1,y1,z1 or "
-                         "ellipsoid:cx,cy,cz,rx,ry,rz), or give a region file")
+                         f"{', '.join(SHAPES)} (box:x0,y0,z0,x1,y1,z1, "
+                         "ellipsoid:cx,cy,cz,rx,ry,rz or colour:K[,T]), or give a region file")
     try:
         values = [float(x) for x in numbers.split(",")]
     except ValueError:
         values = []
+    if shape == ColourRegion.shape:
+        if len(values) not in (1, 2) or not values[0].is_integer():
+            raise InputError(f"region {text!r} needs a palette colour index and optionally "
+                             "a threshold: colour:K or colour:K,T")
+        return [ColourRegion(int(values[0]), *values[1:])]
     if len(values) != 6 or not all(math.isfinite(x) for x in values):
         raise InputError(f"region {text!r} needs 6 finite numbers separated by commas")
     if shape == "box":
@@ -123,21 +166,17 @@ def parse_region(text: str) -> list[Region]:
     return [Region("ellipsoid", tuple(values[:3]), tuple(values[3:]))]
 
 
-def read_regions(path: str | os.PathLike) -> list[Region]:
-    """The regions of a JSON file: ``{"regions": [{"shape", "centre", "half"}, ...]}`` (a
-    palette file the studio saved holds them beside its colours; docs/formats.md)."""
+def read_regions(path: str | os.PathLike) -> list[Region | ColourRegion]:
+    """The regions of a JSON file: ``{"regions": [{"shape", "centre", "half"} |
+    {"shape": "colour", "colour", "threshold"}, ...]}`` (a palette file the studio saved
+    holds them beside its colours; docs/formats.md)."""
     path = Path(path)
     data = read_json(path, "region file", " (a region is box:x0,y0,z0,x1,y1,z1, "
                      "ellipsoid:cx,cy,cz,rx,ry,rz or a file)")
     regions = data.get("regions") if isinstance(data, dict) else None
     if not isinstance(regions, list) or not regions:
         raise InputError(f"region file {path} must hold {{\"regions\": [regions...]}}")
-    return [Region.from_dict(r, f"region file {path}") for r in regions]
-
-
-def write_regions(data: dict, regions: list[Region]) -> dict:
-    """``data`` (a palette file's contents) with ``regions`` beside them."""
-    return {**data, "regions": [r.to_dict() for r in regions]}
+    return [region_from_dict(r, f"region file {path}") for r in regions]
 
 
 @dataclass
@@ -196,5 +235,5 @@ class PixelSamples:
                      for f in ("pixel", "point", "weight")))
 
 
-__all__ = ["KEEP_WEIGHT", "PixelSamples", "Region", "SHAPES", "parse_region", "read_regions",
-           "write_regions"]
+__all__ = ["ColourRegion", "KEEP_WEIGHT", "PixelSamples", "Region", "SHAPES", "parse_region",
+           "read_regions", "region_from_dict"]

@@ -62,7 +62,7 @@ class Selection:
         """InputError unless the selection fits a stack of ``k`` palette colours."""
         if self.colour is not None and not 0 <= self.colour < k:
             raise InputError(f"selected palette colour {self.colour} is not one of the "
-                             f"stack's {k} (0 to {k - 1})")
+                             f"palette's {k} (0 to {k - 1})")
 
     def values(self, name: str, weights: np.ndarray, rgb: np.ndarray,
                basis: Basis = Basis.ADDITIVE) -> np.ndarray:

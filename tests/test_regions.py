@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from nerf_stage.regions import PixelSamples, Region, parse_region, read_regions
+from nerf_stage.regions import ColourRegion, PixelSamples, Region, parse_region, read_regions
 from nerf_stage.simulation import (
     load_scene,
     parse_scene,
@@ -36,6 +36,10 @@ def test_regions_parse_and_contain_points(tmp_path):
     path.write_text(json.dumps({"palette": ["#000000"], "regions": [box.to_dict(),
                                                                     ball.to_dict()]}))
     assert read_regions(path) == parse_region(str(path)) == [box, ball]
+    assert parse_region("colour:2") == [ColourRegion(2, 0.5)]
+    assert parse_region("colour:2,0.3") == [ColourRegion(2, 0.3)]
+    path.write_text(json.dumps({"regions": [ColourRegion(1, 0.4).to_dict()]}))
+    assert read_regions(path) == [ColourRegion(1, 0.4)]
 
 
 @pytest.mark.parametrize("text, message", [
@@ -46,6 +50,9 @@ def test_regions_parse_and_contain_points(tmp_path):
     ("box:0,0,0,1,0,1", "sizes above zero"),
     ("ellipsoid:0,0,0,1,-1,1", "sizes above zero"),
     ("missing.json", "does not exist"),
+    ("colour:x", "palette colour index"),
+    ("colour:1.5", "palette colour index"),
+    ("colour:1,nan", "must be finite"),
 ])
 def test_bad_regions_are_one_clear_error(text, message):
     with pytest.raises(InputError, match=message):
@@ -122,6 +129,18 @@ def test_a_region_splits_the_weights_exactly(sampled, rng):
     assert np.array_equal(half.recolor(inside=edit)[untouched], render.recolor()[untouched])
 
 
+def test_a_colour_region_selects_by_weight_as_in_photos(sampled):
+    run, render = sampled
+    split = render.with_regions([ColourRegion(1, 0.3)])
+    straight = render.weights / np.maximum(render.opacity, 1e-6)[..., None]
+    chosen = straight[..., 2] >= 0.3  # colour 1's first-order term, after the constant one
+    assert chosen.any() and (~chosen).any()
+    assert np.array_equal(split.inside[chosen], render.weights[chosen])
+    assert not split.inside[~chosen].any()
+    with pytest.raises(InputError, match="not one of the palette's 4"):
+        render.with_regions([ColourRegion(4)])
+
+
 def test_render_regions_from_the_command_line(cornell_run, tmp_path, capsys):
     rundir, _ = cornell_run
     palette = tmp_path / "teal.json"
@@ -154,7 +173,8 @@ def test_bad_region_arguments_write_nothing(cornell_run, tmp_path, capsys):
     out = tmp_path / "out"
     for region, message in (("box:0,0,0,1,nan,1", "6 finite numbers"),
                             ("sphere:0,0,0,1,1,1", "unknown region shape"),
-                            ("box:0,0,0,0,1,1", "sizes above zero")):
+                            ("box:0,0,0,0,1,1", "sizes above zero"),
+                            ("colour:4", "not one of the palette's 4")):
         expect_error(main, ["render", str(rundir), "--palette", str(palette), "--region", region,
                             "-o", str(out)], message, capsys)
     expect_error(main, ["render", str(rundir), "--region", "box:0,0,0,1,1,1", "-o", str(out)],

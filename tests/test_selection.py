@@ -106,7 +106,7 @@ def test_palette_recolor_with_a_folder_of_masks(stack_and_edit, capsys):
     (["--mask", "wrong"], "mask wrong/ is 3x3, image a.png is 16x12"),
     (["--mask", "missing"], "no mask for image b.jpg"),
     (["--mask", "nowhere.png"], "does not exist"),
-    (["--select-colour", "7"], "selected palette colour 7 is not one of the stack's 5"),
+    (["--select-colour", "7"], "selected palette colour 7 is not one of the palette's 5"),
     (["--select-near", "#12345"], "must be #rrggbb"),
     (["--select-near", "#123456", "--feather", "nan"], "must be finite"),
     (["--select-colour", "1", "--feather", "-1"], "cannot be negative"),
@@ -193,7 +193,7 @@ def test_edit_files_from_elsewhere_are_refused(stack_and_edit, photo_dir, capsys
                                 "-o", str(tmp / "b")], "made for another stack", capsys)
     data = json.loads((tmp / "e.json").read_text())
     for change, message in (({"mask": "../../etc/passwd"}, "outside"),
-                            ({"colour": 9}, "not one of the stack's 5"),
+                            ({"colour": 9}, "not one of the palette's 5"),
                             ({"near": "#12"}, "must be #rrggbb"),
                             ({"palette": ["#000000"]}, "has 1 colours, expected 5"),
                             ({"hook": 1}, "unknown field 'hook'")):
