@@ -145,25 +145,57 @@ def rig_poses(rig: str, n: int, target, radius: float, elevation: tuple[float, f
     return np.array([look_at(target + o, target) for o in offsets]).reshape(n, 4, 4)
 
 
-def blender_transforms(poses: np.ndarray, file_paths: list[str], fov_x_degrees: float) -> dict:
-    """A ``transforms_<split>.json`` dictionary (Blender synthetic-dataset layout)."""
-    return {
-        "camera_angle_x": math.radians(fov_x_degrees),
-        "frames": [{"file_path": path, "transform_matrix": pose.tolist()}
-                   for path, pose in zip(file_paths, poses)],
-    }
+def off_ring_poses(rig: str, n: int, target, radius: float, elevation: tuple[float, float],
+                   arc: float = 360.0) -> np.ndarray:
+    """(n, 4, 4) poses away from the rig's cameras, looking at ``target``: in turn from above
+    its highest elevation (20 degrees higher, at most 85; below its lowest for a hemisphere,
+    which reaches the pole), from closer (0.6 ``radius``) and from farther (1.5 ``radius``),
+    at azimuths within the rig's (golden-ratio steps). They test what training never had to
+    explain: floaters that the training views see against the background, holes.
+    """
+    low, high = np.radians(elevation)
+    k = np.arange(n)
+    kind = k % 3
+    middle = (low + high) / 2
+    above = max(low - np.radians(20), np.radians(-85)) if rig == "hemisphere" else min(
+        high + np.radians(20), np.radians(85))
+    elev = np.where(kind == 0, above, middle)
+    distance = radius * np.choose(kind, [1.0, 0.6, 1.5])
+    steps = (k * GOLDEN + 0.25) % 1.0
+    azimuth = 2 * np.pi * steps if rig != "front-arc" else np.radians(arc) * (steps - 0.5)
+    offsets = distance[:, None] * np.stack([np.cos(elev) * np.sin(azimuth), np.sin(elev),
+                                            np.cos(elev) * np.cos(azimuth)], axis=-1)
+    target = np.asarray(target, np.float64)
+    return np.array([look_at(target + o, target) for o in offsets]).reshape(n, 4, 4)
+
+
+def blender_transforms(poses: np.ndarray, file_paths: list[str], fov_x_degrees: float,
+                       off_ring: list[bool] | None = None) -> dict:
+    """A ``transforms_<split>.json`` dictionary (Blender synthetic-dataset layout); frames
+    flagged in ``off_ring`` carry ``"off_ring": true``."""
+    return {"camera_angle_x": math.radians(fov_x_degrees),
+            "frames": _frames(poses, file_paths, off_ring)}
 
 
 def nerfstudio_transforms(poses: np.ndarray, file_paths: list[str], width: int, height: int,
-                          fov_x_degrees: float) -> dict:
+                          fov_x_degrees: float, off_ring: list[bool] | None = None) -> dict:
     """A ``transforms.json`` dictionary (nerfstudio layout: pinhole intrinsics in pixels)."""
     focal = focal_from_fov(width, fov_x_degrees)
     return {
         "camera_model": "OPENCV", "fl_x": focal, "fl_y": focal, "cx": width / 2,
         "cy": height / 2, "w": width, "h": height,
-        "frames": [{"file_path": path, "transform_matrix": pose.tolist()}
-                   for path, pose in zip(file_paths, poses)],
+        "frames": _frames(poses, file_paths, off_ring),
     }
+
+
+def _frames(poses: np.ndarray, file_paths: list[str], off_ring: list[bool] | None) -> list:
+    """The ``frames`` list of a transforms file."""
+    frames = [{"file_path": path, "transform_matrix": pose.tolist()}
+              for path, pose in zip(file_paths, poses)]
+    for frame, away in zip(frames, off_ring or ()):
+        if away:
+            frame["off_ring"] = True
+    return frames
 
 
 def orbit_poses(poses: np.ndarray, n: int, centre) -> np.ndarray:

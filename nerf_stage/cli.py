@@ -50,6 +50,10 @@ def build_parser(train_defaults: TrainConfig | None = None) -> ArgumentParser:
                      help="square image size (default: the scene's)")
     sim.add_argument("--views", type=int, nargs=3, default=None, metavar=("TRAIN", "VAL", "TEST"),
                      help="views per split (default: the scene's)")
+    sim.add_argument("--off-ring", type=int, default=None, metavar="N",
+                     help="N more test views away from the training rig (above it, closer, "
+                          "farther: test/o_<i>.png, marked \"off_ring\" in "
+                          "transforms_test.json) to see floaters and holes; blender layout")
     sim.add_argument("--seed", type=int, default=None, help="random seed (default: the scene's)")
     sim.add_argument("--layout", choices=LAYOUTS, default="blender",
                      help="blender (default: transforms_{train,val,test}.json, transport "
@@ -179,7 +183,11 @@ def _dispatch(argv) -> int:
 
 def _simulate(args) -> int:
     scene = with_overrides(load_scene(args.scene), order=args.order, spp=args.spp,
-                           resolution=args.resolution, views=args.views, seed=args.seed)
+                           resolution=args.resolution, views=args.views, seed=args.seed,
+                           off_ring=args.off_ring)
+    if scene.camera.off_ring and args.layout != "blender":
+        raise InputError("off-ring test views are written in the blender layout only (its "
+                         "transforms_test.json marks them)")
     check_outdir(args.outdir, args.force)
     sim = simulate(scene)
     spec = args.scene if args.scene in BUILTIN_SCENES else str(Path(args.scene).resolve())
@@ -270,6 +278,10 @@ def _eval(args) -> int:
     what = "RGB NeRF" if run.field.kind == RGB else "RGB through the weights"
     print(f"{scores['views']} test views, {scores['seconds_per_view']:.2f} s per view")
     print(f"{what}: PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f}")
+    if "off_ring" in scores:
+        off = scores["off_ring"]
+        print(f"{off['views']} test views off the training rig: PSNR {off['psnr']:.2f} dB, "
+              f"SSIM {off['ssim']:.4f}")
     if "edit" in scores:
         edit = scores["edit"]
         print(f"edited palette vs re-simulated scene: PSNR {edit['psnr']:.2f} dB, "

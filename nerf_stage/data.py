@@ -17,6 +17,9 @@ Three layouts are read:
   read as a nerfstudio capture of pinhole cameras in a normalised frame (every eighth
   photo held out likewise); distorted cameras are undistorted by ``nerf-stage poses``.
 
+A frame with ``"off_ring": true`` (Blender or nerfstudio) is a test view away from the
+training cameras (``nerf-stage simulate --off-ring``), scored apart (``Dataset.off_ring``).
+
 Images are read as RGBA and composited on a chosen background; ``downscale`` N averages
 each N x N block of pixels (premultiplied by alpha), for captures larger than the training
 resolution (nerfstudio's ``--downscale-factor``): each photo is read as 8-bit and made small
@@ -74,6 +77,9 @@ class Dataset:
         The images are this many times smaller than the files (``load_dataset``).
     frame_intrinsics : list of Intrinsics or None
         Each frame's camera, where they differ (``camera``).
+    off_ring : (N,) bool
+        Test frames away from the cameras that training saw (a frame's ``"off_ring":
+        true``, which ``nerf-stage simulate --off-ring`` writes): scored apart.
     """
 
     root: Path
@@ -88,6 +94,11 @@ class Dataset:
     frames_outside: bool = False
     downscale: int = 1
     frame_intrinsics: list[Intrinsics] | None = None
+    off_ring: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.off_ring is None:
+            self.off_ring = np.zeros(len(self.names), bool)
 
     def camera(self, i: int) -> Intrinsics:
         """Frame ``i``'s camera."""
@@ -97,9 +108,10 @@ class Dataset:
         """The cameras of the frames ``ids``."""
         return [self.camera(i) for i in ids]
 
-    def indices(self, split: str) -> np.ndarray:
-        """Frame indices of one split."""
-        return np.array([i for i, s in enumerate(self.splits) if s == split], np.int64)
+    def indices(self, split: str, off_ring: bool | None = None) -> np.ndarray:
+        """Frame indices of one split: all of them, or those off the ring or on it."""
+        return np.array([i for i, s in enumerate(self.splits) if s == split
+                         and (off_ring is None or self.off_ring[i] == off_ring)], np.int64)
 
 
 def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
@@ -122,20 +134,20 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     check_downscale(downscale)
     if (root / "transforms_train.json").is_file():
         layout = "blender"
-        names, splits, poses, angle = _read_blender(root, frames_outside)
+        names, splits, poses, angle, off_ring = _read_blender(root, frames_outside)
         with open_image(root / names[0]) as first:
             width, height = first.size
         focal = focal_length(width, angle)
         frame_intrinsics = [Intrinsics(width, height, focal, focal, width / 2, height / 2)]
     elif (root / "transforms.json").is_file():
         layout = "nerfstudio"
-        names, splits, poses, frame_intrinsics = _read_nerfstudio(root, frames_outside)
+        names, splits, poses, frame_intrinsics, off_ring = _read_nerfstudio(root, frames_outside)
     elif (model := find_model(root)) is not None:
         layout = "colmap"
         names, poses, frame_intrinsics = model_frames(read_model(model), str(root))
         names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
                  for name in names]
-        splits = _holdout(len(names))
+        splits, off_ring = _holdout(len(names)), None
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout), "
                          "transforms.json (nerfstudio layout) nor a COLMAP model (sparse/0): "
@@ -154,7 +166,8 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     alpha = rgba[..., 3]
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
-                   alpha, background, layout, frames_outside, downscale, frame_intrinsics)
+                   alpha, background, layout, frames_outside, downscale, frame_intrinsics,
+                   off_ring)
 
 
 def check_downscale(factor) -> int:
@@ -258,9 +271,10 @@ def _field(data: dict, key: str, path: Path, kind=float):
 
 
 def _frames(data: dict, path: Path, default_suffix: str,
-            frames_outside: bool) -> tuple[list[str], list]:
-    """Image names (relative to root, with suffix) and poses of a ``frames`` list."""
-    names, poses = [], []
+            frames_outside: bool) -> tuple[list[str], list, list[bool]]:
+    """Image names (relative to root, with suffix), poses and off-ring flags of a ``frames``
+    list."""
+    names, poses, off_ring = [], [], []
     for i, frame in enumerate(data["frames"]):
         where = f"{path}: frames[{i}]"
         if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
@@ -277,9 +291,12 @@ def _frames(data: dict, path: Path, default_suffix: str,
             raise InputError(f"{where}: 'transform_matrix' must hold numbers") from None
         if not np.isfinite(pose).all():
             raise InputError(f"{where}: 'transform_matrix' holds NaN or infinity")
+        if not isinstance(frame.get("off_ring", False), bool):
+            raise InputError(f"{where}: 'off_ring' must be true or false")
         names.append(_frame_path(name, where, path.parent, frames_outside))
         poses.append(np.vstack([pose[:3], [0.0, 0.0, 0.0, 1.0]]))
-    return names, poses
+        off_ring.append(frame.get("off_ring", False))
+    return names, poses, off_ring
 
 
 def _frame_path(name: str, where: str, root: Path, frames_outside: bool) -> str:
@@ -293,7 +310,7 @@ def _frame_path(name: str, where: str, root: Path, frames_outside: bool) -> str:
 
 
 def _read_blender(root: Path, frames_outside: bool):
-    names, splits, poses, angle = [], [], [], None
+    names, splits, poses, angle, off_ring = [], [], [], None, []
     for split in SPLITS:
         path = root / f"transforms_{split}.json"
         if not path.is_file():
@@ -303,19 +320,20 @@ def _read_blender(root: Path, frames_outside: bool):
         if angle is not None and abs(split_angle - angle) > 1e-9:
             raise InputError(f"{path}: camera_angle_x {split_angle} differs from the train split's")
         angle = split_angle
-        split_names, split_poses = _frames(data, path, ".png", frames_outside)
+        split_names, split_poses, split_off = _frames(data, path, ".png", frames_outside)
         names += split_names
         poses += split_poses
+        off_ring += split_off
         splits += [split] * len(split_names)
     if not names:
         raise InputError(f"{root}: the transforms files list no frames")
-    return names, splits, np.array(poses), angle
+    return names, splits, np.array(poses), angle, np.array(off_ring)
 
 
 def _read_nerfstudio(root: Path, frames_outside: bool):
     path = root / "transforms.json"
     data = _load_json(path)
-    names, poses = _frames(data, path, "", frames_outside)
+    names, poses, off_ring = _frames(data, path, "", frames_outside)
     if not names:
         raise InputError(f"{path} lists no frames")
     cameras = []
@@ -330,7 +348,8 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
     if len(sizes) > 1:
         listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
         raise InputError(f"{path}: frames of different image sizes ({listed}) are not supported")
-    return names, _nerfstudio_splits(data, names, path), np.array(poses), cameras
+    return (names, _nerfstudio_splits(data, names, path), np.array(poses), cameras,
+            np.array(off_ring))
 
 
 def _nerfstudio_splits(data: dict, names: list[str], path: Path) -> list[str]:

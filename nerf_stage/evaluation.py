@@ -49,33 +49,45 @@ def evaluate(run: Run, dataset, edit: np.ndarray | None = None,
     """Scores of the run on the dataset's test views.
 
     Returns a dict with ``reconstruction`` (PSNR, SSIM of the RGB through the
-    weights, or of the RGB NeRF, against the test images), the render time per
-    view, and, for runs on simulated transport stacks, ``edit``: the render
-    recoloured with ``edit`` (default ``rolled_palette``) against the scene
-    re-simulated with that palette.
+    weights, or of the RGB NeRF, against the test images on the training rig),
+    ``off_ring`` (the same on the test views off it, when the dataset has any:
+    ``Dataset.off_ring``), the render time per view, and, for runs on simulated
+    transport stacks, ``edit``: the render on the rig recoloured with ``edit``
+    (default ``rolled_palette``) against the scene re-simulated with that palette.
     """
     names, poses, cameras = render_poses(run, dataset, "test", None)
-    truth = dataset.images[dataset.indices("test")]
+    ids = dataset.indices("test")
+    truth, off = dataset.images[ids], dataset.off_ring[ids]
     start = time.perf_counter()
     values, opacity = run.render(poses, progress, cameras)
     seconds = (time.perf_counter() - start) / len(poses)
     background = np.asarray(run.config.background, np.float64)
-    scores = {"views": len(poses), "seconds_per_view": seconds}
+    scores = {"views": int((~off).sum()), "seconds_per_view": seconds}
     if run.field.kind == RGB:
-        scores["reconstruction"] = image_scores(
-            np.clip(values + (1 - opacity[..., None]) * background, 0, 1), truth)
-        return scores
-    render = WeightRender(values, opacity, names, run.palette, run.basis, run.order,
-                          background, {})
-    scores["reconstruction"] = image_scores(render.recolor(), truth)
+        rgb = np.clip(values + (1 - opacity[..., None]) * background, 0, 1)
+        return {**scores, **_split_scores(rgb, truth, off)}
+    ring = [name for name, away in zip(names, off) if not away]
+    render = WeightRender(values[~off], opacity[~off], ring, run.palette, run.basis,
+                          run.order, background, {})
+    rgb = WeightRender(values, opacity, names, run.palette, run.basis, run.order, background,
+                       {}).recolor()
+    scores.update(_split_scores(rgb, truth, off))
     simulation = SimulationRecord.from_meta(run.record.stack_meta)
     if run.basis == Basis.TRANSPORT and simulation is not None:
         edit = rolled_palette(run.palette) if edit is None else edit
         start = time.perf_counter()
         recoloured = render.recolor(edit)
-        scores["recolour_seconds_per_view"] = (time.perf_counter() - start) / len(poses)
-        truth = resimulated_views(simulation, edit, poses, background)
+        scores["recolour_seconds_per_view"] = (time.perf_counter() - start) / len(recoloured)
+        truth = resimulated_views(simulation, edit, poses[~off], background)
         scores["edit"] = dict(image_scores(recoloured, truth), palette=np.asarray(edit).tolist())
+    return scores
+
+
+def _split_scores(rgb: np.ndarray, truth: np.ndarray, off: np.ndarray) -> dict:
+    """``reconstruction`` scores of the views on the rig and, if any, ``off_ring`` ones."""
+    scores = {"reconstruction": image_scores(rgb[~off], truth[~off])}
+    if off.any():
+        scores["off_ring"] = dict(image_scores(rgb[off], truth[off]), views=int(off.sum()))
     return scores
 
 

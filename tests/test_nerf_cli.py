@@ -216,3 +216,19 @@ def test_a_downscaled_run_renders_and_scores_at_its_size(still_life, tmp_path, c
     assert main(["eval", str(rundir)]) == 0
     assert main(["render", str(rundir), "-o", str(tmp_path / "r")]) == 0
     assert read_render(tmp_path / "r" / "render.npz").weights.shape[1:3] == (8, 8)
+
+
+def test_eval_scores_views_off_the_rig_apart(tmp_path, capsys):
+    from .nerf_runs import TINY_FLAGS
+
+    scene = tmp_path / "cb"
+    assert nerf_stage(["simulate", "cornell-box", str(scene), "--resolution", "12", "--spp", "2",
+                       "--views", "4", "0", "2", "--off-ring", "2"]) == 0
+    rundir = tmp_path / "run"
+    assert main(["train", str(scene), "--weights", str(scene / "weights.npz"), "-o", str(rundir),
+                 *TINY_FLAGS]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(rundir)]) == 0
+    printed = capsys.readouterr().out
+    assert "2 test views, " in printed and "2 test views off the training rig: PSNR" in printed
+    assert "re-simulated scene: PSNR" in printed

@@ -11,6 +11,7 @@ from PIL import Image
 from nerf_stage.cameras import focal_from_fov, look_at, rig_poses
 from nerf_stage.cli import main
 from nerf_stage.cli import main as nerf_stage
+from nerf_stage.data import load_dataset
 from nerf_stage.simulation import (
     BUILTIN_SCENES,
     load_scene,
@@ -429,3 +430,37 @@ def test_every_builtin_scene_simulates_with_its_editable_materials_in_view(name)
         for k in range(len(sim.palette)):
             uses = [i for i, combo in enumerate(terms) if k in combo]
             assert sim.weights[..., uses].sum() > 0, scene.palette_materials[k].name
+
+
+# --- test views off the training rig ------------------------------------------------------------
+
+def test_off_ring_views_are_written_marked_and_read(tmp_path, capsys):
+    out = tmp_path / "sl"
+    assert main(["simulate", "still-life", str(out), "--resolution", "8", "--spp", "2",
+                 "--views", "3", "0", "2", "--off-ring", "3"]) == 0
+    frames = json.loads((out / "transforms_test.json").read_text())["frames"]
+    assert [(f["file_path"], f.get("off_ring", False)) for f in frames] == [
+        ("test/r_000", False), ("test/r_001", False), ("test/o_000", True),
+        ("test/o_001", True), ("test/o_002", True)]
+    data = load_dataset(out)
+    assert data.indices("test").tolist() == [3, 4, 5, 6, 7]
+    assert data.indices("test", off_ring=True).tolist() == [5, 6, 7]
+    assert data.indices("test", off_ring=False).tolist() == [3, 4]
+    ring = data.poses[data.indices("train"), :3, 3]
+    away = data.poses[data.indices("test", off_ring=True), :3, 3]
+    target = np.array([0, 0.4, 0])
+    ring_distance = np.linalg.norm(ring - target, axis=1)
+    elevation = np.degrees(np.arcsin((ring - target)[:, 1] / ring_distance))
+    away_distance = np.linalg.norm(away - target, axis=1)
+    assert np.allclose(ring_distance, 4.5) and elevation.max() <= 40 + 1e-6
+    assert np.degrees(np.arcsin((away[0] - target)[1] / away_distance[0])) > 55  # above
+    assert np.allclose(away_distance[1:], [0.6 * 4.5, 1.5 * 4.5])  # closer, farther
+    capsys.readouterr()
+    expect_error(main, ["simulate", "still-life", str(tmp_path / "ns"), "--resolution", "8",
+                        "--views", "3", "0", "1", "--off-ring", "2", "--layout", "nerfstudio"],
+                 "blender layout only", capsys)
+    transforms = json.loads((out / "transforms_test.json").read_text())
+    transforms["frames"][2]["off_ring"] = "yes"
+    (out / "transforms_test.json").write_text(json.dumps(transforms))
+    with pytest.raises(InputError, match="'off_ring' must be true or false"):
+        load_dataset(out)

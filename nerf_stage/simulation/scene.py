@@ -9,7 +9,8 @@ A scene file holds five sections (README, "Scene files", documents every field):
     lights     [{"type": "area", "corner", "edge1", "edge2", "emission"}
                 | {"type": "point", "position", "intensity"}]
     camera     {"rig": "orbit" | "hemisphere" | "front-arc", "target", "radius",
-                "elevation", "arc", "fov", "resolution", "views": {"train", "val", "test"}}
+                "elevation", "arc", "fov", "resolution",
+                "views": {"train", "val", "test", "off_ring"}}
     render     {"light": "direct" | "indirect", "order", "max_depth", "spp", "seed"}
 
 Editable materials are the palette, in the order they are listed; their albedos
@@ -80,6 +81,7 @@ class Camera:
     width: int
     height: int
     views: dict[str, int]  # views per split
+    off_ring: int = 0  # test views away from the rig (``cameras.off_ring_poses``)
 
 
 @dataclass
@@ -398,7 +400,7 @@ def _parse_camera(reader: _Fields, cam: dict) -> Camera:
         raise reader.fail("camera.resolution", "an integer or [width, height]", resolution)
     width, height = (reader.integer(r, "camera.resolution", "resolution") for r in resolution)
     views = reader.table(cam.get("views", {"train": 100, "val": 10, "test": 20}), "camera.views")
-    reader.only(views, "camera.views", SPLITS)
+    reader.only(views, "camera.views", (*SPLITS, "off_ring"))
     counts = {split: reader.integer(views.get(split, 0), f"camera.views.{split}", "views")
               for split in SPLITS}
     if counts["train"] < 1:
@@ -411,6 +413,7 @@ def _parse_camera(reader: _Fields, cam: dict) -> Camera:
         arc=reader.number(cam.get("arc", 60.0), "camera.arc", 0, 360),
         fov=reader.number(cam.get("fov", 40.0), "camera.fov", 0, 180, inclusive=False),
         width=width, height=height, views=counts,
+        off_ring=reader.integer(views.get("off_ring", 0), "camera.views.off_ring", "views"),
     )
 
 

@@ -30,6 +30,7 @@ from ..cameras import (
     blender_transforms,
     focal_from_fov,
     nerfstudio_transforms,
+    off_ring_poses,
     rig_poses,
 )
 from .geometry import next_term_table, scene_arrays
@@ -134,7 +135,7 @@ class SimulationRecord:
 
 
 def with_overrides(scene: Scene, order=None, spp=None, resolution=None, views=None,
-                   seed=None, max_depth=None) -> Scene:
+                   seed=None, max_depth=None, off_ring=None) -> Scene:
     """A copy of ``scene`` with command-line overrides applied (None keeps the scene's value).
 
     Raises
@@ -168,6 +169,10 @@ def with_overrides(scene: Scene, order=None, spp=None, resolution=None, views=No
         camera = replace(camera, width=resolution, height=resolution)
     if views is not None:
         camera = replace(camera, views=dict(zip(SPLITS, views)))
+    if off_ring is not None:
+        if not low <= off_ring <= high:
+            raise InputError(f"off-ring views must be in [{low}, {high}], got {off_ring}")
+        camera = replace(camera, off_ring=off_ring)
     return replace(scene, render=render, camera=camera)
 
 
@@ -198,7 +203,8 @@ def with_palette(scene: Scene, palette: np.ndarray, only: set[str] | None = None
 
 
 def view_poses(scene: Scene) -> tuple[list[str], np.ndarray]:
-    """Names (``<split>/r_<i>.png``) and (N, 4, 4) poses of every view, train then val then test."""
+    """Names (``<split>/r_<i>.png``) and (N, 4, 4) poses of every view, train then val then
+    test, then the test views off the rig (``test/o_<i>.png``, ``is_off_ring``)."""
     cam = scene.camera
     names, poses = [], []
     for split in SPLITS:
@@ -206,7 +212,18 @@ def view_poses(scene: Scene) -> tuple[list[str], np.ndarray]:
         names += [f"{split}/r_{i:03d}.png" for i in range(n)]
         poses.append(rig_poses(cam.rig, n, cam.target, cam.radius, cam.elevation, cam.arc,
                                SPLIT_PHASES[split]))
+    names += [f"test/{OFF_RING_PREFIX}{i:03d}.png" for i in range(cam.off_ring)]
+    poses.append(off_ring_poses(cam.rig, cam.off_ring, cam.target, cam.radius, cam.elevation,
+                                cam.arc))
     return names, np.concatenate(poses)
+
+
+OFF_RING_PREFIX = "o_"  # test views off the rig: test/o_000.png, ...
+
+
+def is_off_ring(name: str) -> bool:
+    """Whether the view ``name`` of a simulated scene lies off the rig."""
+    return name.startswith(f"test/{OFF_RING_PREFIX}")
 
 
 def render_terms(scene: Scene, poses: np.ndarray, split: bool, progress: bool = False):
@@ -266,9 +283,10 @@ def _check_size(scene: Scene, split: bool) -> None:
     cam = scene.camera
     terms = n_terms(len(scene.palette_materials), Basis.TRANSPORT, scene.render.order) \
         if split else 1
-    needed = sum(cam.views.values()) * cam.width * cam.height * terms * 3 * 8
+    views = sum(cam.views.values()) + cam.off_ring
+    needed = views * cam.width * cam.height * terms * 3 * 8
     if needed > MAX_TERM_BYTES:
-        raise InputError(f"scene {scene.name}: {sum(cam.views.values())} views of "
+        raise InputError(f"scene {scene.name}: {views} views of "
                          f"{cam.width}x{cam.height} with {terms} transport terms need "
                          f"{needed / 2**30:.1f} GiB, more than {MAX_TERM_BYTES / 2**30:.0f} GiB: "
                          "use fewer views, a lower resolution or a lower order")
@@ -331,7 +349,8 @@ def _write_nerfstudio(sim: Simulation, scene: Scene, root: Path) -> list[str]:
     names = [f"images/frame_{i + 1:05d}.png" for i in range(len(sim.names))]
     _write_images(sim, root, names)
     cam = scene.camera
-    frames = nerfstudio_transforms(sim.poses, names, cam.width, cam.height, cam.fov)
+    frames = nerfstudio_transforms(sim.poses, names, cam.width, cam.height, cam.fov,
+                                   [is_off_ring(name) for name in sim.names])
     (root / "transforms.json").write_text(json.dumps(frames, indent=2) + "\n")
     return names + ["transforms.json"]
 
@@ -342,14 +361,15 @@ def _write_files(sim: Simulation, scene: Scene, root: Path, spec: str) -> list[s
     for split in SPLITS:
         index = [i for i, name in enumerate(sim.names) if name.startswith(split + "/")]
         frames = blender_transforms(sim.poses[index], [sim.names[i][:-4] for i in index],
-                                    scene.camera.fov)
+                                    scene.camera.fov, [is_off_ring(sim.names[i]) for i in index])
         (root / f"transforms_{split}.json").write_text(json.dumps(frames, indent=2) + "\n")
         written.append(f"transforms_{split}.json")
     if sim.weights is None:
         return written
     render, cam = scene.render, scene.camera
     record = SimulationRecord(spec, sim.order, render.max_depth, render.spp, render.seed,
-                              [cam.width, cam.height], cam.views, round(sim.seconds, 3))
+                              [cam.width, cam.height], {**cam.views, "off_ring": cam.off_ring},
+                              round(sim.seconds, 3))
     stack = WeightStack(palette=sim.palette, weights=list(sim.weights.astype(np.float32)),
                         names=sim.names, method="simulated", basis=Basis.TRANSPORT,
                         order=sim.order, meta=record.to_meta())
