@@ -12,7 +12,7 @@ from pathlib import Path
 
 from palette_core.cli import ArgumentParser, add_config_arguments, config_from_args, run_cli
 from palette_core.errors import InputError
-from palette_core.outputs import check_outdir
+from palette_core.outputs import atomic_outputs, check_outdir, check_writable
 from palette_core.palette_file import read_palette_json
 from palette_core.stack import DEFAULT_STACK
 
@@ -65,7 +65,38 @@ def build_parser(train_defaults: TrainConfig | None = None) -> ArgumentParser:
     _add_train(commands, train_defaults or TrainConfig())
     _add_render(commands)
     _add_eval(commands)
+    _add_bake(commands)
     return parser
+
+
+def _add_bake(commands) -> None:
+    from .splats import MAX_SPLATS, REFINE_STEPS
+
+    bake = commands.add_parser(
+        "bake", help="bake a run into 3D Gaussian splats that carry palette weights",
+        description="Bake a weight NeRF into 3D Gaussians, one where the training views' light "
+                    "stops, each with the palette weights of its light, refined against the "
+                    "network's renders of the training views (docs/splats.md). Not to be "
+                    "confused with render --baked (the colour part baked into a grid).")
+    bake.add_argument("rundir", metavar="RUNDIR")
+    bake.add_argument("-o", "--output", required=True, metavar="FILE.splat.npz")
+    bake.add_argument("--max-splats", type=int, default=MAX_SPLATS,
+                      help=f"at most this many splats (default {MAX_SPLATS})")
+    bake.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
+                      help=f"views fitted after the first splats (default {REFINE_STEPS}; 0: "
+                           "none)")
+    bake.add_argument("--force", action="store_true", help="overwrite FILE")
+    bake.set_defaults(run=_bake)
+    export = commands.add_parser(
+        "export", help="write recoloured splats as a 3D Gaussian splatting PLY",
+        description="Write the splats of a bake (nerf-stage bake), recoloured with a palette, "
+                    "as a binary PLY in the layout 3D Gaussian splatting viewers read.")
+    export.add_argument("bake", metavar="FILE.splat.npz")
+    export.add_argument("--palette", metavar="JSON", default=None,
+                        help="palette file of the run's K colours (default: the run's own)")
+    export.add_argument("-o", "--output", required=True, metavar="FILE.ply")
+    export.add_argument("--force", action="store_true", help="overwrite FILE.ply")
+    export.set_defaults(run=_export)
 
 
 def _add_poses(commands) -> None:
@@ -260,6 +291,35 @@ def _render(args) -> int:
               "(the network does not run)")
     where = f" (inside {len(regions)} region{'s' * (len(regions) > 1)})" if regions else ""
     print(f"wrote {', '.join(done.labels)} ({done.views} views) to {args.output}{where}")
+    return 0
+
+
+def _bake(args) -> int:
+    from .splats import bake_run, write_splats
+
+    output = Path(args.output)
+    check_writable([output], args.force)
+    splats = bake_run(args.rundir, args.max_splats, args.refine_steps)
+    with atomic_outputs(args.force) as stage:
+        write_splats(splats, stage(output))
+    print(f"wrote {len(splats)} splats to {output} ({output.stat().st_size / 2**20:.1f} MB); "
+          f"next: {PROG} export {output} --palette P.json -o scene.ply")
+    return 0
+
+
+def _export(args) -> int:
+    from .splats import read_splats, write_ply
+
+    output = Path(args.output)
+    if output.suffix.lower() != ".ply":
+        raise InputError(f"a splat export is written as .ply, got {output}")
+    check_writable([output], args.force)
+    splats = read_splats(args.bake)
+    palette = (None if args.palette is None
+               else read_palette_json(args.palette, k=len(splats.palette)))
+    with atomic_outputs(args.force) as stage:
+        write_ply(splats, stage(output), palette)
+    print(f"wrote {len(splats)} splats to {output}")
     return 0
 
 

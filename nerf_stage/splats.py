@@ -1,0 +1,507 @@
+"""Splat bakes: a weight NeRF as 3D Gaussians that a browser draws itself, each carrying the
+palette weights of the light it sends, so that recolouring stays ``weights @ basis`` per
+splat (docs/splats.md, format ``palette-splats/1`` in docs/formats.md).
+
+The bake keeps only what the training views need. Their pixels are rendered with the
+samples their light comes from (``regions.PixelSamples``); every sample adds its
+compositing weight, its position and its pixel's palette weights (divided by the pixel's
+opacity) to a cell of a grid over the scene box. A cell where at least ``MIN_LIGHT`` of a
+pixel's light stops becomes one Gaussian: at the light-weighted mean of its samples, shaped
+by their spread (flat on a surface, which the rays reach all over it), scaled up to cover
+its cell, with the light-weighted mean palette weights, and opaque as the field's density
+across a cell makes it (the light-weighted mean density of its samples; at least
+``MIN_ALPHA``). Space no training ray ends in (floaters that only views off the
+rig would see, the inside of objects) gets no splat. The grid is made coarser until at
+most ``max_splats`` cells are kept.
+
+``render_splats`` draws a bake as weight images (EWA splatting, sorted front to back, as
+3D Gaussian splatting does), which recolour like any weight render.
+
+References
+----------
+B. Kerbl et al. 3D Gaussian splatting for real-time radiance field rendering. SIGGRAPH
+2023 (projection of the covariances, front-to-back blending, the low-pass of 0.3 pixels).
+M. Zwicker et al. EWA splatting. IEEE TVCG 8(3), 2002.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from palette_core.basis import Basis, n_terms
+from palette_core.errors import InputError
+from palette_core.stack import NpzReader
+
+from .cameras import Intrinsics
+from .fields import RGB
+
+SPLAT_FORMAT = "palette-splats/1"
+MAX_SPLATS = 50_000
+MIN_LIGHT = 0.5  # of a pixel's light (summed over the training views) that a kept cell stops
+COVER = 1.5  # the samples' spread in a cell is scaled by this
+THINNEST = 0.05  # smallest standard deviation, in cells
+MIN_ALPHA, MAX_ALPHA = 0.05, 0.99  # the first splats' opacities (``refine`` moves them)
+LOW_PASS = 0.3  # pixels^2 added to every projected covariance (3D Gaussian splatting)
+REFINE_STEPS = 500  # views drawn and fitted by ``refine``
+#: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
+#: logits, palette weights.
+LEARNING_RATES = {"centres": 0.2, "scales": 0.01, "rotations": 0.003, "opacities": 0.05,
+                  "weights": 0.01}
+
+
+@dataclass
+class Splats:
+    """Gaussians with palette weights.
+
+    Attributes
+    ----------
+    centres : (S, 3) float32
+        World positions.
+    scales : (S, 3) float32
+        Standard deviations along the axes of ``rotations``.
+    rotations : (S, 4) float32
+        Unit quaternions (w, x, y, z), local to world.
+    opacities : (S,) float32
+        Peak opacity in (0, 1).
+    weights : (S, M) float32
+        Palette weights of each splat's light (summing to one for the additive basis).
+    palette : (K, 3) float64
+    basis : Basis
+    order : int
+    background : (3,) float64
+    source : dict
+        The run it was baked from: its folder, checkpoint iteration and training time, the
+        cell size, the views used.
+    """
+
+    centres: np.ndarray
+    scales: np.ndarray
+    rotations: np.ndarray
+    opacities: np.ndarray
+    weights: np.ndarray
+    palette: np.ndarray
+    basis: Basis
+    order: int
+    background: np.ndarray
+    source: dict
+
+    def __len__(self) -> int:
+        return len(self.centres)
+
+    def covariances(self) -> np.ndarray:
+        """(S, 3, 3) float64 world covariances R diag(s^2) R^T."""
+        return covariances(torch.as_tensor(self.rotations, dtype=torch.float64),
+                           torch.as_tensor(self.scales, dtype=torch.float64)).numpy()
+
+    def colours(self, palette: np.ndarray | None = None) -> np.ndarray:
+        """(S, 3) float32 colour of every splat for ``palette`` (the run's by default)."""
+        from palette_core.basis import basis_terms
+
+        palette = self.palette if palette is None else np.asarray(palette, np.float64)
+        terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
+        return np.clip(self.weights @ terms, 0, 1)
+
+
+def bake(run, views: np.ndarray, cameras: list[Intrinsics] | None, source: dict,
+         max_splats: int = MAX_SPLATS, refine_steps: int = REFINE_STEPS,
+         progress: bool = True, seed: int = 0) -> Splats:
+    """Bake ``run`` from its training ``views`` (N, 4, 4) (module docstring), then refine
+    the splats against the network's weight renders of those views for ``refine_steps``
+    (``refine``)."""
+    if not 1 <= max_splats <= 10_000_000:
+        raise InputError(f"max splats must be in [1, 10000000], got {max_splats}")
+    if not 0 <= refine_steps <= 1_000_000:
+        raise InputError(f"refine steps must be in [0, 1000000], got {refine_steps}")
+    weights, opacity, samples = run.render(views, progress, cameras, samples=True)
+    camera = cameras[0] if cameras else run.intrinsics
+    splats = _from_samples(run, views, camera, weights, opacity, samples, source, max_splats)
+    splats.source["views"] = len(views)
+    if refine_steps:
+        splats = refine(splats, views, camera, weights, opacity, refine_steps, progress, seed)
+    return splats
+
+
+def bake_run(rundir: str | os.PathLike, max_splats: int = MAX_SPLATS,
+             refine_steps: int = REFINE_STEPS, progress: bool = True) -> Splats:
+    """Bake the run in ``rundir`` from its training views (``bake``); its ``source`` names
+    the run, its checkpoint and when its training ended."""
+    from .run import load_run
+
+    run = load_run(rundir)
+    if run.field.kind == RGB:
+        raise InputError(f"{rundir} was trained on RGB only (strategy 'rgb'): it has no "
+                         "weights to bake")
+    dataset = run.dataset()
+    train = dataset.indices("train")
+    log = run.record.log
+    source = {"run": str(Path(rundir).resolve()), "iteration": run.record.iteration,
+              "trained_seconds": log[-1]["seconds"] if log else 0.0}
+    return bake(run, dataset.poses[train], dataset.cameras(train), source, max_splats,
+                refine_steps, progress)
+
+
+def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarray,
+                  opacity: np.ndarray, samples, source: dict, max_splats: int) -> Splats:
+    """The first splats: one a grid cell where the training views' light stops (module
+    docstring); the cells start as large as a pixel where the light stops (the median over
+    the samples)."""
+    m = weights.shape[-1]
+    straight = (weights / np.maximum(opacity, 1e-6)[..., None]).reshape(-1, m)
+    box = run.box
+    low, high = box.centre - box.half, box.centre + box.half
+    inside = np.all((samples.point >= low) & (samples.point <= high), axis=1) & samples.front
+    point = samples.point[inside].astype(np.float64)
+    light = samples.weight[inside].astype(np.float64)
+    colour = straight[samples.pixel[inside]]
+    if not len(point):
+        raise InputError("no training view's light stops inside the scene box: nothing to bake")
+    eyes = views[samples.pixel[inside] // (camera.height * camera.width), :3, 3]
+    cell = float(np.median(np.linalg.norm(point - eyes, axis=1))) / camera.fx
+    while True:
+        index = np.floor((point - low) / cell).astype(np.int64)
+        dims = np.maximum(np.ceil((high - low) / cell).astype(np.int64), 1)
+        index = np.minimum(index, dims - 1)
+        flat = np.ravel_multi_index(index.T, dims)
+        cells, which = np.unique(flat, return_inverse=True)
+        total = np.bincount(which, light)
+        kept = total >= MIN_LIGHT
+        if kept.sum() <= max_splats:
+            break
+        cell *= 2 ** (1 / 3)
+    if not kept.any():
+        raise InputError(f"no cell stops {MIN_LIGHT} of a pixel of the training views' light: "
+                         "the run is fog still (train it longer)")
+    keep = kept[which]
+    which = np.searchsorted(np.flatnonzero(kept), which[keep])
+    point, light, colour = point[keep], light[keep], colour[keep]
+    total = total[kept]
+    s = len(total)
+    centre = _weighted_sum(which, light[:, None] * point, s) / total[:, None]
+    offset = point - centre[which]
+    spread = _weighted_sum(which, light[:, None, None] * offset[:, :, None] * offset[:, None, :],
+                           s) / total[:, None, None]
+    covariance = COVER * spread + (THINNEST * cell) ** 2 * np.eye(3)
+    variance, axes = np.linalg.eigh(covariance)
+    axes[np.linalg.det(axes) < 0, :, 0] *= -1  # a rotation
+    palette_weights = _weighted_sum(which, light[:, None] * colour, s) / total[:, None]
+    sigma = _density(run, point)
+    alpha = 1 - np.exp(-(_weighted_sum(which, light * sigma, s) / total) * cell / box.scale)
+    alpha = np.clip(alpha, MIN_ALPHA, MAX_ALPHA)
+    source = {**source, "cell": cell}
+    return Splats(centre.astype(np.float32), np.sqrt(variance).astype(np.float32),
+                  matrix_quaternions(axes).astype(np.float32), alpha.astype(np.float32),
+                  palette_weights.astype(np.float32), run.palette, run.basis, run.order,
+                  np.asarray(run.config.background, np.float64), source)
+
+
+def _weighted_sum(which: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """(n, ...) sums of ``values`` (P, ...) by cell ``which`` (P,)."""
+    out = np.zeros((n, *values.shape[1:]))
+    np.add.at(out, which, values)
+    return out
+
+
+@torch.no_grad()
+def _density(run, points: np.ndarray) -> np.ndarray:
+    """(P,) the field's density at world ``points`` (P, 3), per unit of normalised length."""
+    box = run.box
+    device = run.occupancy.extent.device
+    x = torch.as_tensor((points - box.centre) / box.scale, dtype=torch.float32, device=device)
+    if box.unbounded:
+        from .contraction import contract
+
+        x = contract(x)
+    return torch.cat([run.field.density(part)[0].float()
+                      for part in x.split(1 << 16)]).cpu().numpy().astype(np.float64)
+
+
+def refine(splats: Splats, views: np.ndarray, camera: Intrinsics, weights: np.ndarray,
+           opacity: np.ndarray, steps: int, progress: bool = True, seed: int = 0) -> Splats:
+    """Fit the splats to weight renders: each step draws one of ``views`` (N, 4, 4), chosen at
+    random, and takes an Adam step on the squared error of its (N, H, W, M) ``weights`` and
+    (N, H, W) ``opacity`` (the network's renders: any viewpoint would do). Additive weights
+    stay non-negative and sum to one (a softmax). Splats whose opacity falls below 1/255 are
+    dropped."""
+    cell = splats.source["cell"]
+    parameters = {
+        "centres": torch.tensor(splats.centres, dtype=torch.float64),
+        "scales": torch.tensor(np.log(splats.scales), dtype=torch.float64),
+        "rotations": torch.tensor(splats.rotations, dtype=torch.float64),
+        "opacities": torch.tensor(np.log(splats.opacities / (1 - splats.opacities)),
+                                  dtype=torch.float64),
+        "weights": torch.tensor(splats.weights, dtype=torch.float64),
+    }
+    simplex = splats.basis == Basis.ADDITIVE  # additive weights stay on it: a softmax
+    if simplex:
+        parameters["weights"] = torch.log(parameters["weights"].clamp(min=1e-6))
+    for tensor in parameters.values():
+        tensor.requires_grad_(True)
+    scale = {"centres": cell}
+    optimiser = torch.optim.Adam([{"params": [tensor], "lr": LEARNING_RATES[name]
+                                   * scale.get(name, 1.0)}
+                                  for name, tensor in parameters.items()])
+    generator = torch.Generator().manual_seed(seed)
+    m = weights.shape[-1]
+    bar = tqdm(range(steps), desc="refine splats", unit="step", disable=not progress)
+    for _ in bar:
+        i = int(torch.randint(len(views), (1,), generator=generator))
+        drawn, covered = _draw(parameters["centres"], _covariances(parameters),
+                               _weights(parameters, simplex),
+                               torch.sigmoid(parameters["opacities"]),
+                               torch.as_tensor(views[i]), camera)
+        loss = (torch.mean((drawn - torch.as_tensor(weights[i]).view(-1, m)) ** 2)
+                + torch.mean((covered - torch.as_tensor(opacity[i]).view(-1)) ** 2))
+        if not loss.requires_grad:  # no splat shows in this view
+            continue
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        bar.set_postfix(loss=f"{loss.item():.2e}", refresh=False)
+    with torch.no_grad():
+        alpha = torch.sigmoid(parameters["opacities"]).numpy()
+        keep = alpha >= 1 / 255
+        rotations = parameters["rotations"].numpy()[keep]
+        refined = Splats(
+            parameters["centres"].numpy()[keep].astype(np.float32),
+            np.exp(parameters["scales"].numpy()[keep]).astype(np.float32),
+            (rotations / np.linalg.norm(rotations, axis=1, keepdims=True)).astype(np.float32),
+            np.clip(alpha[keep], 1 / 255, MAX_ALPHA).astype(np.float32),
+            _weights(parameters, simplex).numpy()[keep].astype(np.float32), splats.palette,
+            splats.basis, splats.order, splats.background,
+            {**splats.source, "refine_steps": steps})
+    return refined
+
+
+def _weights(parameters: dict, simplex: bool) -> torch.Tensor:
+    """(S, M) palette weights of ``refine``'s parameters: a softmax of them on the simplex."""
+    return torch.softmax(parameters["weights"], 1) if simplex else parameters["weights"]
+
+
+def _covariances(parameters: dict) -> torch.Tensor:
+    """(S, 3, 3) covariances R diag(s^2) R^T of ``refine``'s parameters (log scales s,
+    quaternions R)."""
+    return covariances(parameters["rotations"], torch.exp(parameters["scales"]))
+
+
+def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """(S, 3, 3) R diag(s^2) R^T from (S, 4) quaternions (w, x, y, z; any length) and (S, 3)
+    standard deviations s."""
+    w, x, y, z = (quaternions / quaternions.norm(dim=1, keepdim=True)).T
+    rotation = torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)
+    return (rotation * scales[:, None, :] ** 2) @ rotation.transpose(1, 2)
+
+
+def matrix_quaternions(r: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) rotation matrices -> (S, 4) unit quaternions (w, x, y, z), w >= 0."""
+    r = np.asarray(r, np.float64)
+    trace = np.trace(r, axis1=1, axis2=2)
+    candidates = np.stack([1 + trace, 1 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2],
+                           1 - r[:, 0, 0] + r[:, 1, 1] - r[:, 2, 2],
+                           1 - r[:, 0, 0] - r[:, 1, 1] + r[:, 2, 2]], 1)
+    best = np.argmax(candidates, 1)  # the largest component, divided by without loss
+    q = np.empty((len(r), 4))
+    for k in range(4):
+        at = best == k
+        m, c = r[at], np.sqrt(np.maximum(candidates[at, k], 1e-12)) * 2  # 4 |q_k|
+        if k == 0:
+            q[at] = np.stack([c / 4, (m[:, 2, 1] - m[:, 1, 2]) / c, (m[:, 0, 2] - m[:, 2, 0]) / c,
+                              (m[:, 1, 0] - m[:, 0, 1]) / c], 1)
+        elif k == 1:
+            q[at] = np.stack([(m[:, 2, 1] - m[:, 1, 2]) / c, c / 4, (m[:, 0, 1] + m[:, 1, 0]) / c,
+                              (m[:, 0, 2] + m[:, 2, 0]) / c], 1)
+        elif k == 2:
+            q[at] = np.stack([(m[:, 0, 2] - m[:, 2, 0]) / c, (m[:, 0, 1] + m[:, 1, 0]) / c, c / 4,
+                              (m[:, 1, 2] + m[:, 2, 1]) / c], 1)
+        else:
+            q[at] = np.stack([(m[:, 1, 0] - m[:, 0, 1]) / c, (m[:, 0, 2] + m[:, 2, 0]) / c,
+                              (m[:, 1, 2] + m[:, 2, 1]) / c, c / 4], 1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+@torch.no_grad()
+def render_splats(splats: Splats, poses: np.ndarray, camera: Intrinsics,
+                  progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Draw a bake from (N, 4, 4) ``poses`` (OpenGL camera-to-world) with ``camera``.
+
+    Returns
+    -------
+    weights : (N, H, W, M) float32
+        Composited palette weights, premultiplied by opacity (a weight render).
+    opacity : (N, H, W) float32
+    """
+    tensors = _tensors(splats)
+    h, w = camera.height, camera.width
+    out_weights, out_opacity = [], []
+    for pose in tqdm(poses, desc="draw splats", unit="view", disable=not progress):
+        weights, opacity = _draw(*tensors, torch.as_tensor(pose), camera)
+        out_weights.append(weights.view(h, w, -1).float().numpy())
+        out_opacity.append(opacity.view(h, w).float().numpy())
+    return np.stack(out_weights), np.stack(out_opacity)
+
+
+def _tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
+    """Centres, covariances, weights and opacities as float64 tensors."""
+    return (torch.as_tensor(splats.centres, dtype=torch.float64),
+            torch.as_tensor(splats.covariances()),
+            torch.as_tensor(splats.weights, dtype=torch.float64),
+            torch.as_tensor(splats.opacities, dtype=torch.float64))
+
+
+def _draw(centres, covariances, values, opacities, pose: torch.Tensor,
+          camera: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
+    """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
+    splats' parameters)."""
+    h, w = camera.height, camera.width
+    weights = torch.zeros(h * w, values.shape[1], dtype=values.dtype)
+    opacity = torch.zeros(h * w, dtype=values.dtype)
+    pairs = _pairs(centres, covariances, opacities, pose, camera)
+    if pairs is None:
+        return weights, opacity
+    pixel, splat, alpha = pairs
+    # transmittance in front of each pair: a product over its pixel's earlier pairs
+    log_keep = torch.log1p(-alpha)
+    running = torch.cumsum(log_keep, 0)
+    starts = torch.ones_like(pixel, dtype=torch.bool)
+    starts[1:] = pixel[1:] != pixel[:-1]
+    first = torch.cummax(torch.where(starts, torch.arange(len(pixel)), 0), 0).values
+    before = running - log_keep - (running[first] - log_keep[first])
+    contribution = torch.exp(before) * alpha
+    weights = weights.index_add(0, pixel, contribution[:, None] * values[splat])
+    return weights, opacity.index_add(0, pixel, contribution)
+
+
+def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int = 32):
+    """The (pixel, splat, alpha) pairs of one view above 1/255, sorted by pixel, then front
+    to back; None when no splat shows."""
+    rotation, origin = pose[:3, :3], pose[:3, 3]
+    local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
+    depth = -local[:, 2]
+    ahead = depth > 1e-3
+    local, depth, covariances = local[ahead], depth[ahead], covariances[ahead]
+    index = torch.nonzero(ahead)[:, 0]
+    fx, fy = camera.fx, camera.fy
+    u = camera.cx + fx * local[:, 0] / depth
+    v = camera.cy - fy * local[:, 1] / depth
+    jacobian = torch.zeros(len(depth), 2, 3, dtype=torch.float64)
+    jacobian[:, 0, 0] = fx / depth
+    jacobian[:, 0, 2] = fx * local[:, 0] / depth ** 2
+    jacobian[:, 1, 1] = -fy / depth
+    jacobian[:, 1, 2] = -fy * local[:, 1] / depth ** 2
+    transform = jacobian @ rotation.T
+    projected = transform @ covariances @ transform.transpose(1, 2)
+    projected += LOW_PASS * torch.eye(2, dtype=torch.float64)
+    extent = torch.linalg.eigvalsh(projected.detach())[:, 1]
+    radius = torch.ceil(3 * torch.sqrt(extent)).clamp(max=reach)
+    x0 = (u.detach() - radius).floor().clamp(0, camera.width)
+    x1 = (u.detach() + radius).ceil().clamp(0, camera.width)
+    y0 = (v.detach() - radius).floor().clamp(0, camera.height)
+    y1 = (v.detach() + radius).ceil().clamp(0, camera.height)
+    shown = (x1 > x0) & (y1 > y0)
+    if not shown.any():
+        return None
+    width, height = (x1 - x0)[shown].long(), (y1 - y0)[shown].long()
+    count = width * height
+    owner = torch.repeat_interleave(torch.arange(int(shown.sum())), count)
+    start = torch.cumsum(count, 0) - count
+    within = torch.arange(int(count.sum())) - start[owner]
+    px = x0[shown].long()[owner] + within % width[owner]
+    py = y0[shown].long()[owner] + within // width[owner]
+    ids = torch.nonzero(shown)[:, 0][owner]
+    dx = px + 0.5 - u[ids]
+    dy = py + 0.5 - v[ids]
+    inverse = torch.linalg.inv(projected[ids])
+    power = -0.5 * (inverse[:, 0, 0] * dx * dx + 2 * inverse[:, 0, 1] * dx * dy
+                    + inverse[:, 1, 1] * dy * dy)
+    alpha = torch.clamp(opacities[index[ids]] * torch.exp(power), max=MAX_ALPHA)
+    visible = alpha >= 1 / 255
+    pixel = (py * camera.width + px)[visible]
+    order = torch.argsort(depth.detach()[ids][visible], stable=True)
+    order = order[torch.argsort(pixel[order], stable=True)]
+    return pixel[order], index[ids][visible][order], alpha[visible][order]
+
+
+def write_splats(splats: Splats, path: str | os.PathLike) -> None:
+    """Write a bake as NPZ format ``palette-splats/1``."""
+    np.savez(path, format=np.array(SPLAT_FORMAT), centres=splats.centres, scales=splats.scales,
+             rotations=splats.rotations, opacities=splats.opacities, weights=splats.weights,
+             palette=splats.palette, basis=np.array(str(splats.basis)),
+             order=np.array(splats.order), background=splats.background,
+             source=np.array(json.dumps(splats.source)))
+
+
+def read_splats(path: str | os.PathLike) -> Splats:
+    """Read and validate a bake.
+
+    Raises
+    ------
+    InputError
+        If the file is not a ``palette-splats/1`` NPZ, or a key is missing or malformed.
+    """
+    with NpzReader(Path(path), f"a splat bake ({SPLAT_FORMAT})") as npz:
+        if npz.text("format") != SPLAT_FORMAT:
+            raise InputError(f"{path} is not a splat bake (format {SPLAT_FORMAT})")
+        arrays = {key: npz.array(key, "f") for key in ("centres", "scales", "rotations",
+                                                       "opacities", "weights", "palette",
+                                                       "background")}
+        basis, order = Basis.parse(npz.text("basis")), int(npz.array("order", "iu"))
+        source = npz.json("source")
+    s = len(arrays["centres"])
+    m = n_terms(len(arrays["palette"]), basis, order)
+    shapes = {"centres": (s, 3), "scales": (s, 3), "rotations": (s, 4), "opacities": (s,),
+              "weights": (s, m), "background": (3,)}
+    if (any(arrays[k].shape != shape for k, shape in shapes.items())
+            or arrays["palette"].ndim != 2 or arrays["palette"].shape[1:] != (3,)
+            or not isinstance(source, dict)):
+        raise InputError(f"{path}: the splats' arrays have the wrong shapes")
+    if not all(np.isfinite(a).all() for a in arrays.values()):
+        raise InputError(f"{path}: the splats hold NaN or infinity")
+    if (arrays["scales"] <= 0).any() or not ((arrays["opacities"] > 0)
+                                             & (arrays["opacities"] < 1)).all():
+        raise InputError(f"{path}: splat scales must be positive and opacities in (0, 1)")
+    if (np.linalg.norm(arrays["rotations"], axis=1) < 1e-6).any():
+        raise InputError(f"{path}: a splat rotation is not a quaternion")
+    return Splats(arrays["centres"], arrays["scales"], arrays["rotations"], arrays["opacities"],
+                  arrays["weights"], arrays["palette"].astype(np.float64), basis, order,
+                  arrays["background"].astype(np.float64), source)
+
+
+#: The spherical-harmonics constant of degree 0: a colour c is stored as (c - 0.5) / SH_C0.
+SH_C0 = 0.28209479177387814
+
+
+def write_ply(splats: Splats, path: str | os.PathLike, palette: np.ndarray | None = None) -> None:
+    """Write the splats, coloured with ``palette``, as a 3D Gaussian splatting PLY (binary,
+    little endian): x, y, z, nx, ny, nz, f_dc_0..2 (degree-0 spherical harmonics), opacity
+    (logit), scale_0..2 (log), rot_0..3 (w, x, y, z), the layout splat viewers read."""
+    colours = splats.colours(palette).astype(np.float64)
+    opacity = splats.opacities.astype(np.float64)
+    fields = {
+        "x": splats.centres[:, 0], "y": splats.centres[:, 1], "z": splats.centres[:, 2],
+        "nx": 0.0, "ny": 0.0, "nz": 0.0,
+        **{f"f_dc_{i}": (colours[:, i] - 0.5) / SH_C0 for i in range(3)},
+        "opacity": np.log(opacity / (1 - opacity)),
+        **{f"scale_{i}": np.log(splats.scales[:, i]) for i in range(3)},
+        **{f"rot_{i}": splats.rotations[:, i] for i in range(4)},
+    }
+    table = np.zeros(len(splats), [(name, "<f4") for name in fields])
+    for name, value in fields.items():
+        table[name] = value
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(splats)}\n"
+              + "".join(f"property float {name}\n" for name in fields) + "end_header\n")
+    with open(path, "wb") as file:
+        file.write(header.encode("ascii"))
+        file.write(table.tobytes())
+

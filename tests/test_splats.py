@@ -1,0 +1,162 @@
+"""Splat bakes: a weight NeRF as 3D Gaussians with palette weights; drawing, recolouring,
+the PLY export and the checks of the bake file."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nerf_stage.cameras import Intrinsics, look_at  # noqa: E402
+from nerf_stage.cli import main  # noqa: E402
+from nerf_stage.run import load_run  # noqa: E402
+from nerf_stage.splats import (  # noqa: E402
+    SH_C0,
+    Splats,
+    _draw,
+    _tensors,
+    bake_run,
+    covariances,
+    matrix_quaternions,
+    read_splats,
+    render_splats,
+    write_ply,
+    write_splats,
+)
+from palette_core.basis import Basis, basis_terms  # noqa: E402
+from palette_core.errors import InputError  # noqa: E402
+
+from .helpers import expect_error  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def additive_bake(scene_run):
+    return bake_run(scene_run, refine_steps=5, progress=False)
+
+
+@pytest.fixture
+def hand_made(rng):
+    """200 opaque-ish splats with additive weights in front of ``CAMERA`` at ``POSE``."""
+    n, k = 200, 4
+    q = rng.normal(size=(n, 4))
+    weights = rng.dirichlet(np.ones(k), n)
+    return Splats(rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+                  rng.uniform(0.05, 0.2, (n, 3)).astype(np.float32),
+                  (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                  rng.uniform(0.3, 0.95, n).astype(np.float32), weights.astype(np.float32),
+                  rng.uniform(0, 1, (k, 3)), Basis.ADDITIVE, 1, np.ones(3), {"cell": 0.1})
+
+
+CAMERA = Intrinsics(40, 30, 40.0, 40.0, 20.0, 15.0)
+POSE = look_at([0.0, 0.5, 4.0], [0.0, 0.0, 0.0])
+
+
+def test_a_tiny_run_bakes_with_weights_on_the_simplex(additive_bake, scene_run):
+    splats = additive_bake
+    assert len(splats) > 0 and splats.source["refine_steps"] == 5
+    assert np.allclose(splats.weights.sum(1), 1, atol=1e-5) and splats.weights.min() >= 0
+    assert ((splats.opacities > 0) & (splats.opacities < 1)).all() and (splats.scales > 0).all()
+    run = load_run(scene_run)
+    low, high = run.box.centre - run.box.half, run.box.centre + run.box.half
+    assert ((splats.centres >= low - 1) & (splats.centres <= high + 1)).all()
+
+
+def test_drawing_colours_is_recolouring_the_drawn_weights(hand_made, rng):
+    edit = rng.uniform(0, 1, hand_made.palette.shape)
+    centres, covariance, weights, opacities = _tensors(hand_made)
+    drawn, covered = _draw(centres, covariance, weights, opacities, torch.as_tensor(POSE),
+                           CAMERA)
+    colours = torch.as_tensor(hand_made.colours(edit), dtype=torch.float64)
+    painted, _ = _draw(centres, covariance, colours, opacities, torch.as_tensor(POSE), CAMERA)
+    terms = torch.as_tensor(basis_terms(edit, hand_made.basis, hand_made.order))
+    assert covered.max() > 0.9 and covered.min() >= 0 and covered.max() <= 1
+    assert torch.allclose(painted, drawn @ terms, atol=1e-9)
+    assert torch.allclose(drawn.sum(1), covered, atol=1e-9)  # weights sum to the opacity
+    views, opacity = render_splats(hand_made, POSE[None], CAMERA)
+    assert views.shape == (1, 30, 40, 4) and np.allclose(opacity[0].ravel(), covered.numpy())
+
+
+def test_splats_are_drawn_front_to_back():
+    """Two splats on the axis: the nearer one's colour covers the farther one's."""
+    near_first = Splats(np.array([[0, 0, 1], [0, 0, -1]], np.float32),
+                        np.full((2, 3), 0.3, np.float32), np.tile([1, 0, 0, 0], (2, 1)).astype(
+                            np.float32), np.array([0.9, 0.9], np.float32),
+                        np.eye(2, dtype=np.float32), np.eye(2, 3), Basis.ADDITIVE, 1, np.ones(3),
+                        {})
+    pose = look_at([0.0, 0.0, 4.0], [0.0, 0.0, 0.0])
+    weights, opacity = render_splats(near_first, pose[None], CAMERA)
+    centre = weights[0, 15, 20]
+    assert centre[0] > 0.85 and centre[1] < 0.1 and opacity[0, 15, 20] > 0.95
+
+
+def test_quaternions_round_trip(rng):
+    q = rng.normal(size=(50, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    scales = rng.uniform(0.1, 2, (50, 3))
+    cov = covariances(torch.as_tensor(q), torch.as_tensor(scales)).numpy()
+    variance, axes = np.linalg.eigh(cov)
+    axes[np.linalg.det(axes) < 0, :, 0] *= -1
+    again = covariances(torch.as_tensor(matrix_quaternions(axes)),
+                        torch.as_tensor(np.sqrt(variance))).numpy()
+    assert np.allclose(again, cov, atol=1e-9)
+
+
+def test_the_ply_holds_what_splat_viewers_read(hand_made, tmp_path, rng):
+    trimesh = pytest.importorskip("trimesh")
+    additive_bake = hand_made
+    edit = rng.uniform(0, 1, additive_bake.palette.shape)
+    write_ply(additive_bake, tmp_path / "s.ply", edit)
+    data = trimesh.load(tmp_path / "s.ply").metadata["_ply_raw"]["vertex"]["data"]
+    assert data.dtype.names == ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+                                "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
+                                "rot_2", "rot_3")
+    assert np.allclose(np.stack([data["x"], data["y"], data["z"]], 1), additive_bake.centres)
+    colours = np.stack([data[f"f_dc_{i}"] for i in range(3)], 1) * SH_C0 + 0.5
+    assert np.allclose(colours, additive_bake.colours(edit), atol=1e-5)
+    assert np.allclose(1 / (1 + np.exp(-data["opacity"])), additive_bake.opacities, atol=1e-5)
+    assert np.allclose(np.exp(np.stack([data[f"scale_{i}"] for i in range(3)], 1)),
+                       additive_bake.scales, rtol=1e-5)
+
+
+def test_bake_and_export_from_the_command_line(scene_run, cornell_run, tmp_path, capsys):
+    bake = tmp_path / "cb.splat.npz"
+    assert main(["bake", str(scene_run), "-o", str(bake), "--refine-steps", "2"]) == 0
+    splats = read_splats(bake)
+    assert len(splats) > 0 and splats.weights.shape[1] == 4
+    assert main(["export", str(bake), "-o", str(tmp_path / "cb.ply")]) == 0
+    assert (tmp_path / "cb.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
+    capsys.readouterr()
+    expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.ply")], "already exists",
+                 capsys)
+    expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.obj")], "as .ply", capsys)
+    expect_error(main, ["bake", str(scene_run), "-o", str(tmp_path / "x.npz"),
+                        "--max-splats", "0"], "max splats", capsys)
+    assert main(["bake", str(cornell_run[0]), "-o", str(tmp_path / "x.npz")]) == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]  # after the render's progress
+    assert "the run is fog still" in last  # four steps of training
+    assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"format": np.array("palette-render/2")}, "not a splat bake"),
+    ({"scales": "negative"}, "scales must be positive"),
+    ({"centres": "nan"}, "NaN"),
+    ({"weights": "short"}, "wrong shapes"),
+])
+def test_bake_files_from_elsewhere_are_checked(hand_made, tmp_path, change, message):
+    path = tmp_path / "s.npz"
+    write_splats(hand_made, path)
+    with np.load(path) as npz:
+        arrays = dict(npz)
+    for key, value in change.items():
+        if value == "negative":
+            arrays[key] = -arrays[key]
+        elif value == "nan":
+            arrays[key] = arrays[key].copy()
+            arrays[key][0, 0] = np.nan
+        elif value == "short":
+            arrays[key] = arrays[key][:, :-1]
+        else:
+            arrays[key] = value
+    np.savez(path, **arrays)
+    with pytest.raises(InputError, match=message):
+        read_splats(path)
