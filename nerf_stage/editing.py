@@ -29,7 +29,7 @@ from palette_core.swatch import palette_swatch
 from .cameras import Intrinsics, orbit_poses
 from .fields import RGB
 from .regions import ColourRegion, PixelSamples, Region, region_from_dict
-from .run import Run, load_run
+from .run import Run, load_run, run_source
 
 RENDER_FILE = "render.npz"
 RENDER_FORMAT = "palette-render/2"
@@ -291,10 +291,7 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
             raise InputError(f"two palette files are named {label}.json: their outputs collide")
         palettes[label] = read_palette_json(path, k=len(run.palette))
     views = f"orbit:{orbit}" if orbit is not None else split
-    log = run.record.log
-    source = {"run": str(Path(rundir).resolve()), "iteration": run.record.iteration,
-              "trained_seconds": log[-1]["seconds"] if log else 0.0, "views": views,
-              "baked": baked}
+    source = {**run_source(run, rundir), "views": views, "baked": baked}
     out = Path(out)
     cache = out / RENDER_FILE
     render = read_render(cache) if cache.is_file() else None

@@ -213,6 +213,15 @@ class Run:
         return PixelSamples(pixel, world.astype(np.float32), weight[keep].cpu().numpy())
 
 
+def run_source(run: Run, rundir: str | os.PathLike) -> dict:
+    """What a render or a bake records of the run it came from: its folder, checkpoint
+    iteration and when its training ended (the log's last ``seconds``, so that a run trained
+    again in the same folder is rendered again)."""
+    log = run.record.log
+    return {"run": str(Path(rundir).resolve()), "iteration": run.record.iteration,
+            "trained_seconds": log[-1]["seconds"] if log else 0.0}
+
+
 def check_rundir(rundir: Path, resume: bool, force: bool) -> None:
     """InputError unless ``rundir`` holds a checkpoint exactly when ``resume`` wants one
     (``force`` starts afresh over one)."""

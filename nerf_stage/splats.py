@@ -3,16 +3,18 @@ palette weights of the light it sends, so that recolouring stays ``weights @ bas
 splat (docs/splats.md, format ``palette-splats/1`` in docs/formats.md).
 
 The bake keeps only what the training views need. Their pixels are rendered with the
-samples their light comes from (``regions.PixelSamples``); every sample adds its
-compositing weight, its position and its pixel's palette weights (divided by the pixel's
-opacity) to a cell of a grid over the scene box. A cell where at least ``MIN_LIGHT`` of a
-pixel's light stops becomes one Gaussian: at the light-weighted mean of its samples, shaped
-by their spread (flat on a surface, which the rays reach all over it), scaled up to cover
-its cell, with the light-weighted mean palette weights, and opaque as the field's density
-across a cell makes it (the light-weighted mean density of its samples; at least
-``MIN_ALPHA``). Space no training ray ends in (floaters that only views off the
-rig would see, the inside of objects) gets no splat. The grid is made coarser until at
-most ``max_splats`` cells are kept.
+samples their light comes from (``regions.PixelSamples``); every sample in front of its
+pixel's median termination adds its compositing weight, its position and its pixel's
+palette weights (divided by the pixel's opacity) to a cell of a grid over the scene box,
+cells as large as a training pixel where the light stops. A cell where at least
+``MIN_LIGHT`` of a pixel's light stops becomes one Gaussian: at the light-weighted mean of
+its samples, shaped by their spread (flat on a surface, which the rays reach all over it),
+scaled up to cover its cell and no thinner than ``FILTER`` cells, with the light-weighted
+mean palette weights, and opaque as the field's density across a cell makes it (the
+light-weighted mean density of its samples; at least ``MIN_ALPHA``). Space no training ray
+ends in (floaters that only views off the rig would see, the inside of objects) gets no
+splat. The grid is made coarser until at most ``max_splats`` cells are kept. ``refine``
+then fits the splats to the network's weight renders of the training views.
 
 ``render_splats`` draws a bake as weight images (EWA splatting, sorted front to back, as
 3D Gaussian splatting does), which recolour like any weight render.
@@ -22,6 +24,7 @@ References
 B. Kerbl et al. 3D Gaussian splatting for real-time radiance field rendering. SIGGRAPH
 2023 (projection of the covariances, front-to-back blending, the low-pass of 0.3 pixels).
 M. Zwicker et al. EWA splatting. IEEE TVCG 8(3), 2002.
+Z. Yu et al. Mip-Splatting: alias-free 3D Gaussian splatting. CVPR 2024 (the 3D filter).
 """
 
 from __future__ import annotations
@@ -46,14 +49,19 @@ SPLAT_FORMAT = "palette-splats/1"
 MAX_SPLATS = 50_000
 MIN_LIGHT = 0.5  # of a pixel's light (summed over the training views) that a kept cell stops
 COVER = 1.5  # the samples' spread in a cell is scaled by this
-THINNEST = 0.05  # smallest standard deviation, in cells
+#: Smallest standard deviation along any axis, in cells (about a training pixel where the
+#: light stops): a 3D smoothing filter (Mip-Splatting), so that splats fitted at the
+#: training views' resolution leave no holes where a browser draws them finer.
+FILTER = 0.4
 MIN_ALPHA, MAX_ALPHA = 0.05, 0.99  # the first splats' opacities (``refine`` moves them)
 LOW_PASS = 0.3  # pixels^2 added to every projected covariance (3D Gaussian splatting)
 REFINE_STEPS = 500  # views drawn and fitted by ``refine``
 #: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
-#: logits, palette weights.
-LEARNING_RATES = {"centres": 0.2, "scales": 0.01, "rotations": 0.003, "opacities": 0.05,
-                  "weights": 0.01}
+#: logits, palette weights (or their logits, for the additive basis). Chosen on clay-twins
+#: (docs/splats.md): ten times these (3D Gaussian splatting's opacity rate and a fifth of a
+#: cell a step) left the splats jittering, 4 dB lower.
+LEARNING_RATES = {"centres": 0.02, "scales": 0.005, "rotations": 0.001, "opacities": 0.05,
+                  "weights": 0.0025}
 
 
 @dataclass
@@ -129,22 +137,40 @@ def bake(run, views: np.ndarray, cameras: list[Intrinsics] | None, source: dict,
 
 
 def bake_run(rundir: str | os.PathLike, max_splats: int = MAX_SPLATS,
-             refine_steps: int = REFINE_STEPS, progress: bool = True) -> Splats:
-    """Bake the run in ``rundir`` from its training views (``bake``); its ``source`` names
-    the run, its checkpoint and when its training ended."""
-    from .run import load_run
+             refine_steps: int = REFINE_STEPS, progress: bool = True, run=None) -> Splats:
+    """Bake the run in ``rundir`` (loaded, unless ``run`` is given) from its training views
+    (``bake``); its ``source`` says which run and checkpoint (``run_source``)."""
+    from .run import load_run, run_source
 
-    run = load_run(rundir)
+    run = run or load_run(rundir)
     if run.field.kind == RGB:
         raise InputError(f"{rundir} was trained on RGB only (strategy 'rgb'): it has no "
                          "weights to bake")
     dataset = run.dataset()
     train = dataset.indices("train")
-    log = run.record.log
-    source = {"run": str(Path(rundir).resolve()), "iteration": run.record.iteration,
-              "trained_seconds": log[-1]["seconds"] if log else 0.0}
-    return bake(run, dataset.poses[train], dataset.cameras(train), source, max_splats,
-                refine_steps, progress)
+    return bake(run, dataset.poses[train], dataset.cameras(train), run_source(run, rundir),
+                max_splats, refine_steps, progress)
+
+
+SPLAT_CACHE = "splats.npz"  # the bake the studio keeps in a run folder
+
+
+def cached_bake(run, rundir: str | os.PathLike, progress: bool = True, **options) -> Splats:
+    """The bake kept in ``rundir`` (``SPLAT_CACHE``) if it was made from ``run`` as it is
+    now, else a new one (``bake_run`` with ``options``), kept there for next time."""
+    from palette_core.outputs import atomic_outputs
+
+    from .run import run_source
+
+    path = Path(rundir) / SPLAT_CACHE
+    if path.is_file():
+        kept = read_splats(path)
+        if all(kept.source.get(k) == v for k, v in run_source(run, rundir).items()):
+            return kept
+    splats = bake_run(rundir, progress=progress, run=run, **options)
+    with atomic_outputs(force=True) as stage:  # our own cache, of this run
+        write_splats(splats, stage(path))
+    return splats
 
 
 def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarray,
@@ -187,7 +213,7 @@ def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarra
     offset = point - centre[which]
     spread = _weighted_sum(which, light[:, None, None] * offset[:, :, None] * offset[:, None, :],
                            s) / total[:, None, None]
-    covariance = COVER * spread + (THINNEST * cell) ** 2 * np.eye(3)
+    covariance = COVER * spread + (FILTER * cell) ** 2 * np.eye(3)
     variance, axes = np.linalg.eigh(covariance)
     axes[np.linalg.det(axes) < 0, :, 0] *= -1  # a rotation
     palette_weights = _weighted_sum(which, light[:, None] * colour, s) / total[:, None]
@@ -230,9 +256,12 @@ def refine(splats: Splats, views: np.ndarray, camera: Intrinsics, weights: np.nd
     stay non-negative and sum to one (a softmax). Splats whose opacity falls below 1/255 are
     dropped."""
     cell = splats.source["cell"]
+    floor = FILTER * cell
+    raw = np.sqrt(np.maximum(splats.scales.astype(np.float64) ** 2 - floor ** 2,
+                             (0.01 * cell) ** 2))
     parameters = {
         "centres": torch.tensor(splats.centres, dtype=torch.float64),
-        "scales": torch.tensor(np.log(splats.scales), dtype=torch.float64),
+        "scales": torch.tensor(np.log(raw), dtype=torch.float64),
         "rotations": torch.tensor(splats.rotations, dtype=torch.float64),
         "opacities": torch.tensor(np.log(splats.opacities / (1 - splats.opacities)),
                                   dtype=torch.float64),
@@ -252,7 +281,7 @@ def refine(splats: Splats, views: np.ndarray, camera: Intrinsics, weights: np.nd
     bar = tqdm(range(steps), desc="refine splats", unit="step", disable=not progress)
     for _ in bar:
         i = int(torch.randint(len(views), (1,), generator=generator))
-        drawn, covered = _draw(parameters["centres"], _covariances(parameters),
+        drawn, covered = _draw(parameters["centres"], _covariances(parameters, floor),
                                _weights(parameters, simplex),
                                torch.sigmoid(parameters["opacities"]),
                                torch.as_tensor(views[i]), camera)
@@ -270,7 +299,7 @@ def refine(splats: Splats, views: np.ndarray, camera: Intrinsics, weights: np.nd
         rotations = parameters["rotations"].numpy()[keep]
         refined = Splats(
             parameters["centres"].numpy()[keep].astype(np.float32),
-            np.exp(parameters["scales"].numpy()[keep]).astype(np.float32),
+            _scales(parameters, floor).numpy()[keep].astype(np.float32),
             (rotations / np.linalg.norm(rotations, axis=1, keepdims=True)).astype(np.float32),
             np.clip(alpha[keep], 1 / 255, MAX_ALPHA).astype(np.float32),
             _weights(parameters, simplex).numpy()[keep].astype(np.float32), splats.palette,
@@ -284,10 +313,16 @@ def _weights(parameters: dict, simplex: bool) -> torch.Tensor:
     return torch.softmax(parameters["weights"], 1) if simplex else parameters["weights"]
 
 
-def _covariances(parameters: dict) -> torch.Tensor:
-    """(S, 3, 3) covariances R diag(s^2) R^T of ``refine``'s parameters (log scales s,
+def _scales(parameters: dict, floor: float) -> torch.Tensor:
+    """(S, 3) standard deviations of ``refine``'s log scales, with the ``FILTER`` ``floor``
+    added in quadrature."""
+    return torch.sqrt(torch.exp(2 * parameters["scales"]) + floor ** 2)
+
+
+def _covariances(parameters: dict, floor: float) -> torch.Tensor:
+    """(S, 3, 3) covariances R diag(s^2) R^T of ``refine``'s parameters (``_scales``,
     quaternions R)."""
-    return covariances(parameters["rotations"], torch.exp(parameters["scales"]))
+    return covariances(parameters["rotations"], _scales(parameters, floor))
 
 
 def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:

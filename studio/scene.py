@@ -1,8 +1,12 @@
-"""Scene mode: a trained weight NeRF rendered from the browser's camera.
+"""Scene mode: a trained weight NeRF, drawn by the browser as splats or rendered by the
+network from the browser's camera.
 
-The network runs once per camera view and resolution; the weights are cached with the
-samples behind each pixel, and a palette change, or a region moved (``nerf_stage.regions``),
-recolours them (``nerf_stage.editing.WeightRender``) without running it again.
+The run is baked into splats on first open and the bake kept in the run folder
+(``nerf_stage.splats.cached_bake``); the browser draws them, and a palette change sends
+their new colours. The network runs once per camera view and resolution; the weights are
+cached with the samples behind each pixel, and a palette change, or a region moved
+(``nerf_stage.regions``), recolours them (``nerf_stage.editing.WeightRender``) without
+running it again.
 """
 
 from __future__ import annotations
@@ -21,8 +25,11 @@ from nerf_stage.editing import WeightRender, render_weights, write_gif
 from nerf_stage.fields import RGB
 from nerf_stage.regions import Region
 from nerf_stage.run import Run, load_run
+from nerf_stage.splats import Splats, cached_bake
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
+
+from .guard import log
 
 CACHED_VIEWS = 32
 
@@ -48,6 +55,10 @@ class SceneTarget:
 
     Attributes
     ----------
+    splats : nerf_stage.splats.Splats or None
+        The bake the browser draws (None: the network only).
+    home : (4, 4) float64 or None
+        The first training camera, where a new tab starts.
     bounds : (2, 3) float64
         World corners of what the run found occupied (``OccupancyGrid.bounds``).
     centre : (3,) float64
@@ -56,21 +67,34 @@ class SceneTarget:
 
     mode = "scene"
 
-    def __init__(self, run: Run, path: Path):
+    def __init__(self, run: Run, path: Path, splats: Splats | None = None,
+                 home: np.ndarray | None = None):
         self.run = run
         self.path = path
+        self.splats, self.home = splats, home
         self.bounds = run.box.centre + run.box.scale * run.occupancy.bounds()
         self.centre = self.bounds.mean(0)
         self._views: OrderedDict[tuple, WeightRender] = OrderedDict()
         self._lock = threading.Lock()  # one render at a time, whichever tab asks
 
     @classmethod
-    def open(cls, path: str | os.PathLike) -> SceneTarget:
+    def open(cls, path: str | os.PathLike, bake: bool = True, **bake_options) -> SceneTarget:
+        """The run in folder ``path``, baked (or its kept bake; ``bake_options`` go to
+        ``cached_bake``) unless not ``bake``. A run that does not bake (still fog) opens
+        with the network only, and says why on stderr."""
         run = load_run(path)
         if run.field.kind == RGB:
             raise InputError(f"{path} was trained on RGB only (strategy 'rgb'): it has no "
                              "weights to recolour")
-        return cls(run, Path(path))
+        dataset = run.dataset()
+        home = dataset.poses[dataset.indices("train")[0]]
+        splats = None
+        if bake:
+            try:
+                splats = cached_bake(run, path, **bake_options)
+            except InputError as exc:
+                log(f"no splats, the network draws every view: {exc}")
+        return cls(run, Path(path), splats, home)
 
     @property
     def palette(self) -> np.ndarray:
@@ -82,8 +106,10 @@ class SceneTarget:
         return 2 * math.atan(0.5 * self.run.intrinsics.height / self.run.intrinsics.fy)
 
     def home_pose(self) -> np.ndarray:
-        """(4, 4) a camera in front of the scene (+z), 20 degrees up, framing all that the run
-        found occupied."""
+        """(4, 4) the first training camera, or else a camera in front of the scene (+z), 20
+        degrees up, framing all that the run found occupied."""
+        if self.home is not None:
+            return self.home
         distance = 0.6 * np.linalg.norm(np.ptp(self.bounds, 0)) / math.sin(0.5 * self.fov_y)
         up = math.radians(20)
         return look_at(self.centre + distance * np.array([0, math.sin(up), math.cos(up)]),

@@ -1,8 +1,11 @@
-"""Scene mode of the page: every tab's viewport renders the weight NeRF from its own camera,
-coarse while it moves and at the training resolution once it stops, and recolours the
-cached weights on palette edits without the network (``app.ModeView``). A box region,
-placed with a gizmo and sized in the panel, keeps the edit inside it; moving it recolours
-without the network too (``nerf_stage.regions``)."""
+"""Scene mode of the page (``app.ModeView``). The browser draws the run's splats itself
+(``nerf_stage.splats``): a camera move needs nothing from the server, a palette edit sends
+the splats' new colours. Or every tab's viewport renders the weight NeRF from its own
+camera, coarse while it moves and at the training resolution once it stops, and recolours
+the cached weights on palette edits without the network; with splats, *full-quality still*
+renders the network's view once. A box region, placed with a gizmo and sized in the panel,
+keeps the edit inside it; moving it recolours without the network too
+(``nerf_stage.regions``)."""
 
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ from .pictures import bounded_aspect, camera_pose, to_bytes
 from .scene import MAX_TURNTABLE, SceneTarget, recoloured
 
 PREVIEW_ROWS = 24  # rows of a scene view while the camera moves
+SPLATS, NETWORK = "splats (in the browser)", "network (on the server)"
 SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
 
 
@@ -35,7 +39,20 @@ class SceneView:
         return self.target.path / "edited_palette.json"
 
     def build_panel(self, gui) -> None:
-        """The region: on or off, and its size; its gizmo moves it in the scene."""
+        """What draws the view (splats or the network) and the full-quality still; the
+        region: on or off, and its size; its gizmo moves it in the scene."""
+        splats = self.target.splats
+        with gui.add_folder("View"):
+            self.drawer = gui.add_dropdown(
+                "drawn by", (SPLATS, NETWORK) if splats is not None else (NETWORK,),
+                hint="splats: camera moves need no server; the network: full quality")
+            self.drawer.on_update(lambda event: self._drawer_changed())
+            still = gui.add_button("full-quality still", disabled=splats is None,
+                                   hint="the network's render of this view, until it moves")
+            still.on_click(lambda event: self.viewports[event.client.client_id].still())
+        self.splat_node = None if splats is None else self.studio.server.scene.add_gaussian_splats(
+            "/splats", splats.centres, splats.covariances(), splats.colours(),
+            splats.opacities[:, None])
         size = np.ptp(self.target.bounds, 0) / 4
         with gui.add_folder("Region"):
             self.local = gui.add_checkbox(
@@ -73,18 +90,45 @@ class SceneView:
         self.turntable_views = gui.add_number("turntable views", initial_value=36, min=1,
                                               max=MAX_TURNTABLE, step=1)
 
+    @property
+    def splats_drawn(self) -> bool:
+        return self.drawer.value == SPLATS
+
     def connect(self, client) -> None:
         pose = self.target.home_pose()
+        eye = pose[:3, 3]
         client.camera.fov = self.target.fov_y
         client.camera.up_direction = (0.0, 1.0, 0.0)
-        client.camera.position = pose[:3, 3]
-        client.camera.look_at = self.target.centre
+        client.camera.position = eye
+        client.camera.look_at = eye - pose[:3, 2] * np.linalg.norm(self.target.centre - eye)
         self.open_viewports()
         self.viewports[client.client_id] = Viewport(self.studio, self, client)
 
     def redraw(self) -> None:
+        if self.splat_node is not None:
+            self.splat_node.visible = self.splats_drawn
+            if self.splats_drawn:
+                self.splat_node.rgbs = self.splat_colours()
         for viewport in self.open_viewports():
             viewport.recolour()
+
+    def splat_colours(self) -> np.ndarray:
+        """(S, 3) the splats' colours for the palette shown, inside the region only when it
+        is on (a splat is in when its centre is)."""
+        splats, palette = self.target.splats, self.studio.shown_palette
+        region = None if self.studio.before.value else self.region()
+        if region is None:
+            return splats.colours(palette)
+        colours = splats.colours()
+        inside = region.contains(splats.centres)
+        colours[inside] = splats.colours(palette)[inside]
+        return colours
+
+    def _drawer_changed(self) -> None:
+        with self.studio.lock:
+            self.studio.redraw()
+            for viewport in self.open_viewports():
+                viewport.moved.set()  # the network draws from here (or no longer does)
 
     def export(self, client, path: str | os.PathLike, palette: np.ndarray,
                force: bool) -> list[Path]:
@@ -136,9 +180,18 @@ class Viewport:
             self.moved.clear()
             if not self.running:
                 return
+            if self.view.splats_drawn:  # the browser draws; a still is gone once it moves
+                self.render = None
+                self.client.scene.set_background_image(None)
+                continue
             self._draw(PREVIEW_ROWS)
             if not self.moved.wait(SETTLE_S):
                 self._draw(None)
+
+    def still(self) -> None:
+        """The network's render of this tab's view at the training resolution, over the
+        splats until the camera moves."""
+        self._draw(None)
 
     def _draw(self, rows: int | None) -> None:
         try:

@@ -38,6 +38,28 @@ def chromium(width: int = 1000, height: int = 700):
     return webdriver.Chrome(options=options, service=Service(CHROMEDRIVER))
 
 
+#: The viewport's canvas reduced to 64 x 64, as a flat list of RGB values.
+_READ_THUMBNAIL = """
+const canvas = [...document.querySelectorAll('canvas')]
+    .sort((a, b) => b.width * b.height - a.width * a.height)[0];
+if (!canvas || canvas.width === 0) return null;
+const copy = document.createElement('canvas');
+copy.width = 64; copy.height = 64;
+const context = copy.getContext('2d');
+context.drawImage(canvas, 0, 0, 64, 64);
+return Array.from(context.getImageData(0, 0, 64, 64).data).filter((v, i) => i % 4 !== 3);
+"""
+
+
+def thumbnail(driver):
+    """(64, 64, 3) int array: the viewport shrunk, to compare whole frames; None before it
+    draws."""
+    import numpy as np
+
+    values = driver.execute_script(_READ_THUMBNAIL)
+    return None if values is None else np.array(values, int).reshape(64, 64, 3)
+
+
 def pixel(driver, x: float = 0.5, y: float = 0.5) -> list[int] | None:
     """RGB (0..255) of the viewport at fractions ``x``, ``y`` of its width and height."""
     return driver.execute_script(_READ_PIXEL, x, y)

@@ -418,3 +418,34 @@ def test_the_url_is_the_first_line_and_a_signal_stops_it(tmp_path, rng):
         _, err = process.communicate(timeout=30)
     assert process.returncode == 128 + signal.SIGTERM
     assert "Traceback" not in err
+
+
+def test_scene_mode_draws_splats_and_recolours_them(scene_run, monkeypatch):
+    from nerf_stage import splats as splat_module
+    from studio.scene import SceneTarget
+
+    target = SceneTarget.open(scene_run, refine_steps=5)
+    assert target.splats is not None and (scene_run / splat_module.SPLAT_CACHE).is_file()
+    monkeypatch.setattr(splat_module, "bake_run", lambda *a, **k: pytest.fail("baked again"))
+    again = SceneTarget.open(scene_run)  # the kept bake of the same run
+    assert np.array_equal(again.splats.centres, target.splats.centres)
+    run_pose = target.run.dataset().poses[0]
+    assert np.array_equal(target.home_pose(), run_pose)  # the first training camera
+    studio = Studio(target, port=0)
+    try:
+        view = studio.view
+        assert view.splats_drawn and view.splat_node.visible
+        edited = target.palette[::-1].copy()
+        studio._apply(lambda: [studio.editor.set_colour(i, c) for i, c in enumerate(edited)])
+        expected = np.round(target.splats.colours(edited) * 255)
+        assert np.abs(view.splat_node.rgbs.astype(float) - expected).max() <= 1
+        view.gizmo.position = tuple(target.splats.centres[0])
+        view.size.value = (1e-3, 1e-3, 1e-3)
+        view.local.value = True  # a box around one splat: only it takes the edit
+        colours = view.splat_colours()
+        assert np.allclose(colours[0], target.splats.colours(edited)[0])
+        assert np.allclose(colours[1:], target.splats.colours()[1:])
+        view.drawer.value = "network (on the server)"
+        assert not view.splat_node.visible
+    finally:
+        studio.stop()

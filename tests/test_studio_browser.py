@@ -99,7 +99,7 @@ def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monk
     recolouring of the cached weights."""
     from studio.scene import SceneTarget
 
-    studio = serve(SceneTarget.open(scene_run))
+    studio = serve(SceneTarget.open(scene_run, bake=False))  # the network draws
     driver.get(studio.url)
     rows = studio.target.run.intrinsics.height
 
@@ -151,6 +151,56 @@ def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monk
     assert browser.wait_for(unobstructed, timeout=10), (browser.pixel(driver), low, high)
     assert not calls
     assert view.saved_with_palette()["regions"][0]["shape"] == "box"
+
+
+def test_scene_mode_splats_are_drawn_by_the_browser(driver, serve, scene_run, monkeypatch):
+    """The browser draws the bake: a camera move gives new frames and a palette edit new
+    colours, and the network never runs."""
+    from nerf_stage.splats import Splats
+    from studio.scene import SceneTarget
+
+    target = SceneTarget.open(scene_run, bake=False)
+    rng = np.random.default_rng(0)  # opaque splats around the scene's middle
+    n, k = 400, len(target.palette)
+    spread = np.ptp(target.bounds, 0) / 6
+    target.splats = Splats(
+        (target.centre + rng.normal(size=(n, 3)) * spread).astype(np.float32),
+        np.tile(spread / 4, (n, 1)).astype(np.float32), np.tile([1, 0, 0, 0], (n, 1)).astype(
+            np.float32), np.full(n, 0.9, np.float32), np.eye(k, dtype=np.float32)[
+            rng.integers(k, size=n)], target.palette, target.run.basis, target.run.order,
+        np.ones(3), {})
+    calls = []
+    monkeypatch.setattr(target.run, "render", lambda *a, **k: calls.append(a))
+    studio = serve(target)
+    driver.get(studio.url)
+    first = browser.wait_for(lambda: _settled_frame(driver), timeout=60)
+    assert first is not None
+    first = first[0]
+    studio._apply(lambda: [studio.editor.set_colour(i, np.array([1.0, 0.0, 1.0]))
+                           for i in range(len(target.palette))])
+    recoloured = browser.wait_for(lambda: _changed(driver, first), timeout=10)
+    assert recoloured is not None
+    recoloured = recoloured[0]
+    client = next(iter(studio.server.get_clients().values()))
+    with client.atomic():
+        client.camera.position = client.camera.position + np.array([1.0, 0.5, 0.0])
+    assert browser.wait_for(lambda: _changed(driver, recoloured), timeout=10) is not None
+    assert not calls  # neither the edit nor the move ran the network
+
+
+def _settled_frame(driver):
+    """The viewport (in a list: ``wait_for`` wants it truthy), once two reads a second apart
+    agree."""
+    before = browser.thumbnail(driver)
+    time.sleep(1.0)
+    after = browser.thumbnail(driver)
+    return [after] if before is not None and np.array_equal(before, after) else None
+
+
+def _changed(driver, frame):
+    """The viewport (in a list), once it differs from ``frame`` in some pixels."""
+    now = browser.thumbnail(driver)
+    return [now] if now is not None and np.abs(now - frame).max() > 40 else None
 
 
 @pytest.fixture

@@ -1,0 +1,119 @@
+"""Splat bakes against the network and the simulator's truth, on the training rig's test views
+and on views off it.
+
+For each scene (default the still life and the Cornell box) the run is trained with
+``nerf-stage train``'s defaults (or reused from ``OUT/<scene>-run``, which
+``bench_simulated.py --out OUT`` also writes), baked (``nerf-stage bake``'s defaults, timed),
+and drawn (``splats.render_splats``) at the dataset's test views and at ``--off-ring`` views
+away from the rig (``cameras.off_ring_poses``: above it, closer, farther), whose truth the
+path tracer renders. Reported per scene: splats, file size, bake seconds, and PSNR of the
+network's render and of the bake against the truth, and of the bake against the network,
+on and off the rig. Figure ``OUT/splats.png``: per scene, truth, network and bake of the
+first test view, then of the first off-ring view.
+
+    python benchmarks/bench_splats.py [--out benchmarks/out/simulated] [--scenes ...]
+                                      [--off-ring 6] [--refine-steps N] [--max-splats N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_nerf import prepare, table
+from bench_simulated import figure
+
+from nerf_stage.cameras import off_ring_poses
+from nerf_stage.config import TrainConfig
+from nerf_stage.data import load_dataset
+from nerf_stage.editing import WeightRender, render_poses
+from nerf_stage.evaluation import composited
+from nerf_stage.metrics import psnr
+from nerf_stage.run import CHECKPOINT, load_run
+from nerf_stage.simulation import BUILTIN_SCENES, load_scene, render_terms
+from nerf_stage.splats import MAX_SPLATS, REFINE_STEPS, bake_run, render_splats, write_splats
+from nerf_stage.trainer import train
+from palette_core.stack import read_stack
+
+
+def truth(scene: str, poses: np.ndarray, resolution: tuple[int, int],
+          background: np.ndarray) -> np.ndarray:
+    """(N, H, W, 3) the built-in ``scene`` path traced from ``poses`` at its own settings."""
+    from nerf_stage.simulation import with_overrides
+
+    spec = load_scene(scene)
+    width, height = resolution
+    spec = with_overrides(spec, resolution=width if width == height else None)
+    radiance, alpha = render_terms(spec, poses, split=False)
+    return composited(radiance[..., 0, :], alpha, background)
+
+
+def mean_psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.mean([psnr(x, y) for x, y in zip(a, b)]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/out/simulated"))
+    parser.add_argument("--scenes", nargs="+", default=["still-life", "cornell-box"],
+                        choices=BUILTIN_SCENES)
+    parser.add_argument("--off-ring", type=int, default=6)
+    parser.add_argument("--refine-steps", type=int, default=REFINE_STEPS)
+    parser.add_argument("--max-splats", type=int, default=MAX_SPLATS)
+    args = parser.parse_args()
+    results, rows, pictures = {}, [], []
+    for scene in args.scenes:
+        root, stack_path = prepare(scene, args.out)
+        config = TrainConfig()
+        dataset = load_dataset(root, config.background)
+        rundir = args.out / f"{scene}-run"
+        if not (rundir / CHECKPOINT).is_file():
+            train(config, dataset, read_stack(stack_path), rundir, force=True,
+                  weights_path=str(stack_path.resolve()))
+        run = load_run(rundir)
+        start = time.perf_counter()
+        splats = bake_run(rundir, args.max_splats, args.refine_steps)
+        seconds = time.perf_counter() - start
+        with tempfile.TemporaryDirectory() as folder:
+            write_splats(splats, Path(folder) / "s.npz")
+            megabytes = (Path(folder) / "s.npz").stat().st_size / 2**20
+        background = np.asarray(run.config.background, np.float64)
+        names, poses, cameras = render_poses(run, dataset, "test", None)
+        cam = load_scene(scene).camera
+        away = off_ring_poses(cam.rig, args.off_ring, cam.target, cam.radius, cam.elevation,
+                              cam.arc)
+        views = {"ring": (poses, dataset.images[dataset.indices("test")]),
+                 "off ring": (away, truth(scene, away, (cam.width, cam.height), background))}
+        scores = {"splats": len(splats), "megabytes": megabytes, "bake_seconds": seconds}
+        picture = []
+        for label, (where, real) in views.items():
+            network = _recoloured(run, *run.render(where, False, cameras[0]), background)
+            baked = _recoloured(run, *render_splats(splats, where, cameras[0]), background)
+            scores[label] = {"network": mean_psnr(network, real), "bake": mean_psnr(baked, real),
+                             "bake_vs_network": mean_psnr(baked, network)}
+            picture += [real[0], network[0], baked[0]]
+        results[scene] = scores
+        rows.append([scene, len(splats), megabytes, seconds,
+                     *[scores[v][k] for v in views for k in ("network", "bake",
+                                                            "bake_vs_network")]])
+        pictures.append(picture)
+        print(f"{scene}: {rows[-1]}", flush=True)
+    table("Splat bakes (PSNR dB against the truth, and of the bake against the network)",
+          ["scene", "splats", "MB", "bake s", "ring: network", "ring: bake",
+           "ring: bake vs network", "off ring: network", "off ring: bake",
+           "off ring: bake vs network"], rows)
+    (args.out / "splats.json").write_text(json.dumps(results, indent=1))
+    figure(pictures, args.out / "splats.png")
+
+
+def _recoloured(run, weights, opacity, background) -> np.ndarray:
+    return WeightRender(weights, opacity, [], run.palette, run.basis, run.order, background,
+                        {}).recolor()
+
+
+if __name__ == "__main__":
+    main()
