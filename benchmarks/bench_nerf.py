@@ -88,6 +88,19 @@ def prepare(scene: str, data: Path) -> tuple[Path, Path]:
     return root, stack
 
 
+def scene_run(scene: str, out: Path, config: TrainConfig):
+    """The built-in ``scene`` simulated into ``out`` (``prepare``) and its run,
+    ``out/<scene>-run``, trained with ``config`` unless it is there already; returns the
+    dataset, the run and the weight stack's path."""
+    root, stack_path = prepare(scene, out)
+    dataset = load_dataset(root, config.background)
+    rundir = out / f"{scene}-run"
+    if not (rundir / CHECKPOINT).is_file():
+        train(config, dataset, read_stack(stack_path), rundir, force=True,
+              weights_path=str(stack_path.resolve()))
+    return dataset, load_run(rundir), stack_path
+
+
 def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: Path,
                 scored: bool = True):
     """Train (or reuse) one run and, if ``scored``, evaluate it; returns its scores (if

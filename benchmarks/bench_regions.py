@@ -26,19 +26,15 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from bench_nerf import prepare, table
+from bench_nerf import scene_run, table
 from PIL import Image
 
 from nerf_stage.config import TrainConfig
-from nerf_stage.data import load_dataset
 from nerf_stage.editing import render_poses, render_weights
 from nerf_stage.evaluation import resimulated_views
 from nerf_stage.metrics import image_scores
 from nerf_stage.regions import parse_region
-from nerf_stage.run import CHECKPOINT, load_run
 from nerf_stage.simulation import SimulationRecord
-from nerf_stage.trainer import train
-from palette_core.stack import read_stack
 
 SCENE, OBJECT = "clay-twins", "clay ball"
 REGION = "box:0.2,-0.1,-0.6,1.6,1.2,0.8"  # around the ball, far from the vase
@@ -54,13 +50,7 @@ def main() -> None:
     args = parser.parse_args()
     region, = parse_region(args.region)
     config = TrainConfig(**dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ())))
-    root, stack_path = prepare(SCENE, args.out)
-    dataset = load_dataset(root, config.background)
-    rundir = args.out / f"{SCENE}-run"
-    if not (rundir / CHECKPOINT).is_file():
-        train(config, dataset, read_stack(stack_path), rundir, force=True,
-              weights_path=str(stack_path.resolve()))
-    run = load_run(rundir)
+    dataset, run, _ = scene_run(SCENE, args.out, config)
     names, poses, cameras = render_poses(run, dataset, "test", None)
     render = render_weights(run, names, poses, {}, False, cameras, samples=True)
     edit = run.palette.copy()

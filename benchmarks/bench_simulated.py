@@ -27,17 +27,14 @@ import json
 from pathlib import Path
 
 import numpy as np
-from bench_nerf import prepare, table
+from bench_nerf import scene_run, table
 from PIL import Image
 
 from nerf_stage.config import TrainConfig
-from nerf_stage.data import load_dataset
 from nerf_stage.editing import WeightRender, render_poses
 from nerf_stage.evaluation import composited, evaluate, rolled_palette
 from nerf_stage.metrics import edit_response
-from nerf_stage.run import CHECKPOINT, load_run
 from nerf_stage.simulation import BUILTIN_SCENES
-from nerf_stage.trainer import train
 from palette_core.basis import Basis, weights_to_rgb
 from palette_core.stack import read_stack
 
@@ -104,13 +101,8 @@ def main() -> None:
     config = TrainConfig(**iters)
     results, rows, pictures = {}, [], []
     for scene in args.scenes:
-        root, stack_path = prepare(scene, args.out)
-        dataset, stack = load_dataset(root, config.background), read_stack(stack_path)
-        rundir = args.out / f"{scene}-run"
-        if not (rundir / CHECKPOINT).is_file():
-            train(config, dataset, stack, rundir, force=True,
-                  weights_path=str(stack_path.resolve()))
-        run = load_run(rundir)
+        dataset, run, stack_path = scene_run(scene, args.out, config)
+        stack = read_stack(stack_path)
         scores = evaluate(run, dataset, progress=False)
         scores["seconds"] = run.record.log[-1]["seconds"]
         scores["unbounded"] = run.box.unbounded

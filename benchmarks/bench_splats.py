@@ -24,20 +24,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_nerf import prepare, table
+from bench_nerf import scene_run, table
 from bench_simulated import figure
 
 from nerf_stage.cameras import off_ring_poses
 from nerf_stage.config import TrainConfig
-from nerf_stage.data import load_dataset
 from nerf_stage.editing import WeightRender, render_poses
 from nerf_stage.evaluation import composited
 from nerf_stage.metrics import psnr
-from nerf_stage.run import CHECKPOINT, load_run
 from nerf_stage.simulation import BUILTIN_SCENES, load_scene, render_terms
 from nerf_stage.splats import MAX_SPLATS, REFINE_STEPS, bake_run, render_splats, write_splats
-from nerf_stage.trainer import train
-from palette_core.stack import read_stack
 
 
 def truth(scene: str, poses: np.ndarray, resolution: tuple[int, int],
@@ -67,16 +63,10 @@ def main() -> None:
     args = parser.parse_args()
     results, rows, pictures = {}, [], []
     for scene in args.scenes:
-        root, stack_path = prepare(scene, args.out)
-        config = TrainConfig()
-        dataset = load_dataset(root, config.background)
-        rundir = args.out / f"{scene}-run"
-        if not (rundir / CHECKPOINT).is_file():
-            train(config, dataset, read_stack(stack_path), rundir, force=True,
-                  weights_path=str(stack_path.resolve()))
-        run = load_run(rundir)
+        dataset, run, _ = scene_run(scene, args.out, TrainConfig())
         start = time.perf_counter()
-        splats = bake_run(rundir, args.max_splats, args.refine_steps)
+        splats = bake_run(args.out / f"{scene}-run", args.max_splats, args.refine_steps,
+                          run=run)
         seconds = time.perf_counter() - start
         with tempfile.TemporaryDirectory() as folder:
             write_splats(splats, Path(folder) / "s.npz")

@@ -182,7 +182,8 @@ def read_regions(path: str | os.PathLike) -> list[Region | ColourRegion]:
 @dataclass
 class PixelSamples:
     """Where the light of each pixel of some views comes from: its rays' samples, ordered by
-    pixel (stably: in marching order within a pixel).
+    pixel (stably: in marching order within a pixel; the rays of a supersampled pixel
+    interleave, so their first half of light is the pixel's, roughly).
 
     Attributes
     ----------

@@ -58,8 +58,8 @@ LOW_PASS = 0.3  # pixels^2 added to every projected covariance (3D Gaussian spla
 REFINE_STEPS = 500  # views drawn and fitted by ``refine``
 #: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
 #: logits, palette weights (or their logits, for the additive basis). Chosen on clay-twins
-#: (docs/splats.md): ten times these (3D Gaussian splatting's opacity rate and a fifth of a
-#: cell a step) left the splats jittering, 4 dB lower.
+#: (docs/splats.md): the first rates tried (a fifth of a cell a step for the centres, two to
+#: four times these for the others) left the splats jittering, 4 dB lower.
 LEARNING_RATES = {"centres": 0.02, "scales": 0.005, "rotations": 0.001, "opacities": 0.05,
                   "weights": 0.0025}
 

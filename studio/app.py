@@ -84,8 +84,9 @@ def check_port(host: str, port: int) -> None:
                              "(choose another --port)") from None
 
 
-def open_target(path: str):
-    """A ``PhotoTarget`` for a weight stack, a ``SceneTarget`` for a run folder.
+def open_target(path: str, splats: bool = True):
+    """A ``PhotoTarget`` for a weight stack, a ``SceneTarget`` for a run folder (baked into
+    splats unless not ``splats``).
 
     Raises
     ------
@@ -96,7 +97,7 @@ def open_target(path: str):
 
     target = Path(path)
     if target.is_dir() and (target / CHECKPOINT).is_file():
-        return SceneTarget.open(target)
+        return SceneTarget.open(target, bake=splats)
     if target.suffix in (".npz", ".zarr"):
         return PhotoTarget.open(target)
     if not target.exists():

@@ -22,6 +22,9 @@ def build_parser() -> ArgumentParser:
                         help="address to listen on (default 127.0.0.1: this machine only)")
     parser.add_argument("--no-browser", action="store_true",
                         help="print the address only; do not open a browser")
+    parser.add_argument("--no-splats", action="store_true",
+                        help="scene mode: let the network draw every view, without baking the "
+                             "run into splats for the browser (docs/splats.md)")
     return parser
 
 
@@ -32,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args) -> int:
     from .app import Studio, open_target
 
-    studio = Studio(open_target(args.target), args.host, args.port)
+    studio = Studio(open_target(args.target, splats=not args.no_splats), args.host, args.port)
     print(studio.url, flush=True)
     print(f"editing {args.target} ({studio.target.mode}); Ctrl+C to stop", file=sys.stderr)
     if not args.no_browser:
