@@ -38,12 +38,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from palette_core.basis import Basis, n_terms
+from palette_core.basis import Basis, basis_terms, n_terms
 from palette_core.errors import InputError
+from palette_core.outputs import atomic_outputs
 from palette_core.stack import NpzReader
 
 from .cameras import Intrinsics
 from .fields import RGB
+from .run import load_run, run_source
 
 SPLAT_FORMAT = "palette-splats/1"
 MAX_SPLATS = 50_000
@@ -110,8 +112,6 @@ class Splats:
 
     def colours(self, palette: np.ndarray | None = None) -> np.ndarray:
         """(S, 3) float32 colour of every splat for ``palette`` (the run's by default)."""
-        from palette_core.basis import basis_terms
-
         palette = self.palette if palette is None else np.asarray(palette, np.float64)
         terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
         return np.clip(self.weights @ terms, 0, 1)
@@ -127,12 +127,13 @@ def bake(run, views: np.ndarray, cameras: list[Intrinsics] | None, source: dict,
         raise InputError(f"max splats must be in [1, 10000000], got {max_splats}")
     if not 0 <= refine_steps <= 1_000_000:
         raise InputError(f"refine steps must be in [0, 1000000], got {refine_steps}")
+    cameras = cameras or [run.intrinsics] * len(views)
     weights, opacity, samples = run.render(views, progress, cameras, samples=True)
-    camera = cameras[0] if cameras else run.intrinsics
-    splats = _from_samples(run, views, camera, weights, opacity, samples, source, max_splats)
+    splats = _from_samples(run, views, cameras[0], weights, opacity, samples, source,
+                           max_splats)
     splats.source["views"] = len(views)
     if refine_steps:
-        splats = refine(splats, views, camera, weights, opacity, refine_steps, progress, seed)
+        splats = refine(splats, views, cameras, weights, opacity, refine_steps, progress, seed)
     return splats
 
 
@@ -140,8 +141,6 @@ def bake_run(rundir: str | os.PathLike, max_splats: int = MAX_SPLATS,
              refine_steps: int = REFINE_STEPS, progress: bool = True, run=None) -> Splats:
     """Bake the run in ``rundir`` (loaded, unless ``run`` is given) from its training views
     (``bake``); its ``source`` says which run and checkpoint (``run_source``)."""
-    from .run import load_run, run_source
-
     run = run or load_run(rundir)
     if run.field.kind == RGB:
         raise InputError(f"{rundir} was trained on RGB only (strategy 'rgb'): it has no "
@@ -158,10 +157,6 @@ SPLAT_CACHE = "splats.npz"  # the bake the studio keeps in a run folder
 def cached_bake(run, rundir: str | os.PathLike, progress: bool = True, **options) -> Splats:
     """The bake kept in ``rundir`` (``SPLAT_CACHE``) if it was made from ``run`` as it is
     now, else a new one (``bake_run`` with ``options``), kept there for next time."""
-    from palette_core.outputs import atomic_outputs
-
-    from .run import run_source
-
     path = Path(rundir) / SPLAT_CACHE
     if path.is_file():
         kept = read_splats(path)
@@ -248,13 +243,13 @@ def _density(run, points: np.ndarray) -> np.ndarray:
                       for part in x.split(1 << 16)]).cpu().numpy().astype(np.float64)
 
 
-def refine(splats: Splats, views: np.ndarray, camera: Intrinsics, weights: np.ndarray,
+def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights: np.ndarray,
            opacity: np.ndarray, steps: int, progress: bool = True, seed: int = 0) -> Splats:
-    """Fit the splats to weight renders: each step draws one of ``views`` (N, 4, 4), chosen at
-    random, and takes an Adam step on the squared error of its (N, H, W, M) ``weights`` and
-    (N, H, W) ``opacity`` (the network's renders: any viewpoint would do). Additive weights
-    stay non-negative and sum to one (a softmax). Splats whose opacity falls below 1/255 are
-    dropped."""
+    """Fit the splats to weight renders: each step draws one of ``views`` (N, 4, 4) with its
+    camera, chosen at random, and takes an Adam step on the squared error of its
+    (N, H, W, M) ``weights`` and (N, H, W) ``opacity`` (the network's renders: any viewpoint
+    would do). Additive weights stay non-negative and sum to one (a softmax). Splats whose
+    opacity falls below 1/255 are dropped."""
     cell = splats.source["cell"]
     floor = FILTER * cell
     raw = np.sqrt(np.maximum(splats.scales.astype(np.float64) ** 2 - floor ** 2,
@@ -284,7 +279,7 @@ def refine(splats: Splats, views: np.ndarray, camera: Intrinsics, weights: np.nd
         drawn, covered = _draw(parameters["centres"], _covariances(parameters, floor),
                                _weights(parameters, simplex),
                                torch.sigmoid(parameters["opacities"]),
-                               torch.as_tensor(views[i]), camera)
+                               torch.as_tensor(views[i]), cameras[i])
         loss = (torch.mean((drawn - torch.as_tensor(weights[i]).view(-1, m)) ** 2)
                 + torch.mean((covered - torch.as_tensor(opacity[i]).view(-1)) ** 2))
         if not loss.requires_grad:  # no splat shows in this view
