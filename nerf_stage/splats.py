@@ -431,8 +431,11 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     jacobian[:, 1, 2] = -fy * local[:, 1] / depth ** 2
     transform = jacobian @ rotation.T
     projected = transform @ covariances @ transform.transpose(1, 2)
-    projected += LOW_PASS * torch.eye(2, dtype=torch.float64)
-    extent = torch.linalg.eigvalsh(projected.detach())[:, 1]
+    a, b, c = projected[:, 0, 0] + LOW_PASS, projected[:, 0, 1], projected[:, 1, 1] + LOW_PASS
+    determinant = a * c - b * b
+    conic = torch.stack([c, -b, a], 1) / determinant[:, None]  # the inverse, per splat
+    middle = (a + c).detach() / 2
+    extent = middle + torch.sqrt((middle ** 2 - determinant.detach()).clamp(min=0))
     radius = torch.ceil(3 * torch.sqrt(extent)).clamp(max=reach)
     x0 = (u.detach() - radius).floor().clamp(0, camera.width)
     x1 = (u.detach() + radius).ceil().clamp(0, camera.width)
@@ -451,14 +454,14 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     ids = torch.nonzero(shown)[:, 0][owner]
     dx = px + 0.5 - u[ids]
     dy = py + 0.5 - v[ids]
-    inverse = torch.linalg.inv(projected[ids])
-    power = -0.5 * (inverse[:, 0, 0] * dx * dx + 2 * inverse[:, 0, 1] * dx * dy
-                    + inverse[:, 1, 1] * dy * dy)
+    pair_conic = conic[ids]
+    power = -0.5 * (pair_conic[:, 0] * dx * dx + 2 * pair_conic[:, 1] * dx * dy
+                    + pair_conic[:, 2] * dy * dy)
     alpha = torch.clamp(opacities[index[ids]] * torch.exp(power), max=MAX_ALPHA)
     visible = alpha >= 1 / 255
     pixel = (py * camera.width + px)[visible]
-    order = torch.argsort(depth.detach()[ids][visible], stable=True)
-    order = order[torch.argsort(pixel[order], stable=True)]
+    nearness = depth.detach()[ids][visible]
+    order = torch.argsort(pixel + nearness / (nearness.max() * 2))  # by pixel, then depth
     return pixel[order], index[ids][visible][order], alpha[visible][order]
 
 
