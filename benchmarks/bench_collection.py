@@ -17,9 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -81,18 +81,22 @@ def make_video(path: Path, frames: int, rng) -> None:
         container.mux(stream.encode())
 
 
-def run(inputs: list[str], store: Path, workers: int | None) -> dict:
-    shutil.rmtree(store, ignore_errors=True)
-    command = ["/usr/bin/time", "-f", "maxrss %M", sys.executable, "-m",
-               "palette_core.cli.decompose", *inputs, "-k", "6", "-o", str(store), "--force"]
-    if workers:
-        command += ["--workers", str(workers)]
-    done = subprocess.run(command, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(done.stderr[-2000:])
+def run(inputs: list[str], data: Path, workers: int | None) -> dict:
+    """Decompose ``inputs`` into a store in a fresh temporary folder in ``data`` (removed
+    after measuring) and return the command's times, peak memory and store size."""
+    data.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=data) as folder:
+        store = Path(folder) / "store.zarr"
+        command = ["/usr/bin/time", "-f", "maxrss %M", sys.executable, "-m",
+                   "palette_core.cli.decompose", *inputs, "-k", "6", "-o", str(store)]
+        if workers:
+            command += ["--workers", str(workers)]
+        done = subprocess.run(command, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(done.stderr[-2000:])
+        size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
     times = dict(re.findall(r"(\w+) ([\d.]+) s", done.stdout.split("time:")[1]))
     pixels = float(re.search(r"([\d.]+) Mpx", done.stdout).group(1))
-    size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
     return {"mpx": pixels, "pass1_s": float(times["pass1"]), "palette_s": float(times["palette"]),
             "pass2_s": float(times["pass2"]),
             "rss_mb": int(re.search(r"maxrss (\d+)", done.stderr).group(1)) / 1024,
@@ -125,7 +129,7 @@ def main() -> None:
                 make_jpegs(source, size // 2, rng)
             label = f"{size // 2} JPEGs of 2 MP"
         for workers in (None, 2):
-            row = run([str(source)], data / "store.zarr", workers) | {"collection": label}
+            row = run([str(source)], data, workers) | {"collection": label}
             rows.append(row)
             total = row["pass1_s"] + row["palette_s"] + row["pass2_s"]
             print(f"{label:<22} {row['workers']:>7} {row['mpx']:>7.0f} {row['pass1_s']:>8.1f} "

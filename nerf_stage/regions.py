@@ -230,10 +230,6 @@ class PixelSamples:
         share = np.divide(within, total, out=np.zeros(n), where=total > 0)
         return np.clip(share, 0, 1).astype(np.float32).reshape(shape)
 
-    @classmethod
-    def concatenate(cls, parts: list[PixelSamples]) -> PixelSamples:
-        return cls(*(np.concatenate([getattr(p, f) for p in parts])
-                     for f in ("pixel", "point", "weight")))
 
 
 __all__ = ["ColourRegion", "KEEP_WEIGHT", "PixelSamples", "Region", "SHAPES", "parse_region",

@@ -195,13 +195,16 @@ class Run:
                           .cpu().numpy())
             accs.append(torch.cat([a for _, a in outputs]).reshape(shape).mean(2).cpu().numpy())
         rendered = np.stack(values), np.stack(accs)
-        return (*rendered, PixelSamples.concatenate(kept)) if samples else rendered
+        if not samples:
+            return rendered
+        return (*rendered, PixelSamples(*(np.concatenate(part) for part in zip(*kept))))
 
     def _pixel_samples(self, chunk, origins, directions, first_ray: int, first_pixel: int,
-                       rays: int) -> PixelSamples:
-        """The visible samples of a chunk of rays (from ray ``first_ray`` of a view whose
-        first pixel is ``first_pixel``, ``rays`` rays a pixel) above ``KEEP_WEIGHT``, and each
-        ray's strongest (a foggy ray's samples may all lie below it)."""
+                       rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel, world position and weight (``PixelSamples``) of the visible samples of a
+        chunk of rays (from ray ``first_ray`` of a view whose first pixel is ``first_pixel``,
+        ``rays`` rays a pixel) above ``KEEP_WEIGHT``, and each ray's strongest (a foggy ray's
+        samples may all lie below it)."""
         visible = chunk.visible()
         weight = visible.weight / rays
         strongest = torch.zeros(len(chunk.opacity), device=weight.device).scatter_reduce(
@@ -210,7 +213,7 @@ class Run:
         points = sample_positions(visible, self.occupancy, origins, directions)[keep]
         world = points.cpu().numpy().astype(np.float64) * self.box.scale + self.box.centre
         pixel = first_pixel + (first_ray + visible.ray[keep]).cpu().numpy() // rays
-        return PixelSamples(pixel, world.astype(np.float32), weight[keep].cpu().numpy())
+        return pixel, world.astype(np.float32), weight[keep].cpu().numpy()
 
 
 def run_source(run: Run, rundir: str | os.PathLike) -> dict:

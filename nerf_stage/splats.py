@@ -61,7 +61,8 @@ REFINE_STEPS = 500  # views drawn and fitted by ``refine``
 #: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
 #: logits, palette weights (or their logits, for the additive basis). Chosen on clay-twins
 #: (docs/splats.md): the first rates tried (a fifth of a cell a step for the centres, two to
-#: four times these for the others) left the splats jittering, 4 dB lower.
+#: four times these for scales, rotations and weights) left the splats jittering, 4 dB
+#: lower.
 LEARNING_RATES = {"centres": 0.02, "scales": 0.005, "rotations": 0.001, "opacities": 0.05,
                   "weights": 0.0025}
 
@@ -138,14 +139,16 @@ def bake(run, views: np.ndarray, cameras: list[Intrinsics] | None, source: dict,
 
 
 def bake_run(rundir: str | os.PathLike, max_splats: int = MAX_SPLATS,
-             refine_steps: int = REFINE_STEPS, progress: bool = True, run=None) -> Splats:
-    """Bake the run in ``rundir`` (loaded, unless ``run`` is given) from its training views
-    (``bake``); its ``source`` says which run and checkpoint (``run_source``)."""
+             refine_steps: int = REFINE_STEPS, progress: bool = True, run=None,
+             dataset=None) -> Splats:
+    """Bake the run in ``rundir`` (loaded, unless ``run`` is given) from the training views of
+    its dataset (read, unless ``dataset`` is given; ``bake``); its ``source`` says which run
+    and checkpoint (``run_source``)."""
     run = run or load_run(rundir)
     if run.field.kind == RGB:
         raise InputError(f"{rundir} was trained on RGB only (strategy 'rgb'): it has no "
                          "weights to bake")
-    dataset = run.dataset()
+    dataset = dataset or run.dataset()
     train = dataset.indices("train")
     return bake(run, dataset.poses[train], dataset.cameras(train), run_source(run, rundir),
                 max_splats, refine_steps, progress)

@@ -91,7 +91,7 @@ class SceneTarget:
         splats = None
         if bake:
             try:
-                splats = cached_bake(run, path, **bake_options)
+                splats = cached_bake(run, path, dataset=dataset, **bake_options)
             except InputError as exc:
                 log(f"no splats, the network draws every view: {exc}")
         return cls(run, Path(path), splats, home)
