@@ -26,6 +26,8 @@ demo: $(BIN)/.installed
 	$(BIN)/python examples/edit_palette.py $(NERF)/weights.palette.json -o $(NERF)/recolored.json --force
 	$(BIN)/nerf-stage render $(NERF)/run --orbit 36 --palette $(NERF)/recolored.json --harmonize best -o $(NERF)/turntable --force
 	$(BIN)/nerf-stage eval $(NERF)/run
+	$(BIN)/nerf-stage bake $(NERF)/run --force
+	$(BIN)/nerf-stage export $(NERF)/run --palette $(NERF)/recolored.json -o $(NERF)/recolored.ply --force
 	@echo
 	@echo "Demo outputs in $(DEMO_OUT)/:"
 	@echo "  weights.palette.png, .json     extracted palette (swatch and JSON)"
@@ -43,6 +45,8 @@ demo: $(BIN)/.installed
 	@echo "  nerf/turntable/harmonized-best.gif  novel views with the harmonised palette"
 	@echo "  nerf/turntable/render.npz      the weight render; render again with another"
 	@echo "                                 --palette to recolour it without the network"
+	@echo "  nerf/run/splats.npz            the run baked into splats the browser draws"
+	@echo "  nerf/recolored.ply             those splats recoloured, for 3D Gaussian splatting viewers"
 	@echo
 	@echo "Edit live in the browser: $(BIN)/palette-studio $(DEMO_OUT)/weights.npz"
 	@echo "                      or: $(BIN)/palette-studio $(NERF)/run"

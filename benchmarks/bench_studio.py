@@ -2,7 +2,8 @@
 
 Photo mode: a 1-megapixel photo (a mosaic of scikit-image photos, as in
 bench_collection.py) decomposed with K = 6. Scene mode: a trained weight NeRF
-(default `demo_out/nerf/run` from `make demo`, 100x100 views). For each, a colour
+(default `demo_out/nerf/run` from `make demo`, 100x100 views), drawn by the network
+(bench_splat_browser.py times the splats). For each, a colour
 is typed into the panel N times (alternating between the dominant colour of the
 viewport's centre and its complement) and the page times, frame by frame, Enter to
 the first frame whose centre pixel changed (tests/browser.py). Photo mode also times brush
@@ -144,7 +145,7 @@ def bench_photos(driver, out: Path, n: int) -> None:
 
 
 def bench_scene(driver, run: Path, out: Path, n: int) -> None:
-    target = SceneTarget.open(run)
+    target = SceneTarget.open(run, bake=False)
     studio = Studio(target, port=0)
     try:
         driver.get(studio.url)

@@ -70,7 +70,7 @@ def build_parser(train_defaults: TrainConfig | None = None) -> ArgumentParser:
 
 
 def _add_bake(commands) -> None:
-    from .splats import MAX_SPLATS, REFINE_STEPS
+    from .splats import MAX_SPLATS, REFINE_STEPS, SPLAT_CACHE
 
     bake = commands.add_parser(
         "bake", help="bake a run into 3D Gaussian splats that carry palette weights",
@@ -79,7 +79,9 @@ def _add_bake(commands) -> None:
                     "network's renders of the training views (docs/splats.md). Not to be "
                     "confused with render --baked (the colour part baked into a grid).")
     bake.add_argument("rundir", metavar="RUNDIR")
-    bake.add_argument("-o", "--output", required=True, metavar="FILE.splat.npz")
+    bake.add_argument("-o", "--output", metavar="FILE.splat.npz",
+                      help=f"default RUNDIR/{SPLAT_CACHE}, the bake palette-studio and export "
+                           "RUNDIR read")
     bake.add_argument("--max-splats", type=int, default=MAX_SPLATS,
                       help=f"at most this many splats (default {MAX_SPLATS})")
     bake.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
@@ -91,7 +93,9 @@ def _add_bake(commands) -> None:
         "export", help="write recoloured splats as a 3D Gaussian splatting PLY",
         description="Write the splats of a bake (nerf-stage bake), recoloured with a palette, "
                     "as a binary PLY in the layout 3D Gaussian splatting viewers read.")
-    export.add_argument("bake", metavar="FILE.splat.npz")
+    export.add_argument("bake", metavar="FILE.splat.npz|RUNDIR",
+                        help=f"a bake, or a run folder: its {SPLAT_CACHE}, baked first when it "
+                             "is missing or older than the run")
     export.add_argument("--palette", metavar="JSON", default=None,
                         help="palette file of the run's K colours (default: the run's own)")
     export.add_argument("-o", "--output", required=True, metavar="FILE.ply")
@@ -295,9 +299,9 @@ def _render(args) -> int:
 
 
 def _bake(args) -> int:
-    from .splats import bake_run, write_splats
+    from .splats import SPLAT_CACHE, bake_run, write_splats
 
-    output = Path(args.output)
+    output = Path(args.output or Path(args.rundir) / SPLAT_CACHE)
     check_writable([output], args.force)
     splats = bake_run(args.rundir, args.max_splats, args.refine_steps)
     with atomic_outputs(args.force) as stage:
@@ -308,17 +312,19 @@ def _bake(args) -> int:
 
 
 def _export(args) -> int:
-    from .splats import read_splats, write_ply
+    from .run import load_run
+    from .splats import cached_bake, read_splats, write_ply
 
     output = Path(args.output)
     if output.suffix.lower() != ".ply":
         raise InputError(f"a splat export is written as .ply, got {output}")
     check_writable([output], args.force)
-    splats = read_splats(args.bake)
+    splats = (cached_bake(load_run(args.bake), args.bake) if Path(args.bake).is_dir()
+              else read_splats(args.bake))
     palette = (None if args.palette is None
                else read_palette_json(args.palette, k=len(splats.palette)))
     with atomic_outputs(args.force) as stage:
-        write_ply(splats, stage(output), palette)
+        write_ply(splats, stage(output), splats.colours(palette))
     print(f"wrote {len(splats)} splats to {output}")
     return 0
 

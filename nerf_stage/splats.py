@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,12 +46,16 @@ from palette_core.stack import NpzReader
 
 from .cameras import Intrinsics
 from .fields import RGB
+from .regions import Region
 from .run import load_run, run_source
 
 SPLAT_FORMAT = "palette-splats/1"
 MAX_SPLATS = 50_000
 MIN_LIGHT = 0.5  # of a pixel's light (summed over the training views) that a kept cell stops
 COVER = 1.5  # the samples' spread in a cell is scaled by this
+#: A cell's splats of light from either side of its surface (a wall seen from both sides) are
+#: moved this far (cells) towards their side, so that each covers the other from its side.
+SIDE_OFFSET = 0.25
 #: Smallest standard deviation along any axis, in cells (about a training pixel where the
 #: light stops): a 3D smoothing filter (Mip-Splatting), so that splats fitted at the
 #: training views' resolution leave no holes where a browser draws them finer.
@@ -111,11 +116,17 @@ class Splats:
         return covariances(torch.as_tensor(self.rotations, dtype=torch.float64),
                            torch.as_tensor(self.scales, dtype=torch.float64)).numpy()
 
-    def colours(self, palette: np.ndarray | None = None) -> np.ndarray:
-        """(S, 3) float32 colour of every splat for ``palette`` (the run's by default)."""
+    def colours(self, palette: np.ndarray | None = None,
+                regions: Sequence[Region] = ()) -> np.ndarray:
+        """(S, 3) float32 colour of every splat for ``palette`` (the run's by default); with
+        ``regions``, only the splats whose centres are inside one take it."""
         palette = self.palette if palette is None else np.asarray(palette, np.float64)
         terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
-        return np.clip(self.weights @ terms, 0, 1)
+        colours = np.clip(self.weights @ terms, 0, 1)
+        if regions:
+            outside = ~np.any([region.contains(self.centres) for region in regions], axis=0)
+            colours[outside] = self.colours()[outside]
+        return colours
 
 
 def bake(run, views: np.ndarray, cameras: list[Intrinsics] | None, source: dict,
@@ -180,20 +191,25 @@ def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarra
     straight = (weights / np.maximum(opacity, 1e-6)[..., None]).reshape(-1, m)
     box = run.box
     low, high = box.centre - box.half, box.centre + box.half
-    inside = np.all((samples.point >= low) & (samples.point <= high), axis=1) & samples.front
+    front, pixel = samples.front, samples.pixel
+    median = front & np.r_[(pixel[1:] != pixel[:-1]) | ~front[1:], True]  # the last in front
+    inside = median & np.all((samples.point >= low) & (samples.point <= high), axis=1)
     point = samples.point[inside].astype(np.float64)
-    light = samples.weight[inside].astype(np.float64)
-    colour = straight[samples.pixel[inside]]
+    light = opacity.reshape(-1)[pixel[inside]].astype(np.float64)
+    colour = straight[pixel[inside]]
     if not len(point):
         raise InputError("no training view's light stops inside the scene box: nothing to bake")
-    eyes = views[samples.pixel[inside] // (camera.height * camera.width), :3, 3]
+    eyes = views[pixel[inside] // (camera.height * camera.width), :3, 3]
     cell = float(np.median(np.linalg.norm(point - eyes, axis=1))) / camera.fx
     while True:
         index = np.floor((point - low) / cell).astype(np.int64)
         dims = np.maximum(np.ceil((high - low) / cell).astype(np.int64), 1)
         index = np.minimum(index, dims - 1)
-        flat = np.ravel_multi_index(index.T, dims)
-        cells, which = np.unique(flat, return_inverse=True)
+        cells, which = np.unique(np.ravel_multi_index(index.T, dims), return_inverse=True)
+        normal = _moments(which, point, light, len(cells))[2][:, :, 0]
+        # a thin wall seen from both sides is two splats, one a side (a bit towards it)
+        side = np.einsum("pc,pc->p", point - eyes, normal[which]) > 0
+        groups, which = np.unique(2 * which + side, return_inverse=True)
         total = np.bincount(which, light)
         kept = total >= MIN_LIGHT
         if kept.sum() <= max_splats:
@@ -205,14 +221,11 @@ def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarra
     keep = kept[which]
     which = np.searchsorted(np.flatnonzero(kept), which[keep])
     point, light, colour = point[keep], light[keep], colour[keep]
-    total = total[kept]
-    s = len(total)
-    centre = _weighted_sum(which, light[:, None] * point, s) / total[:, None]
-    offset = point - centre[which]
-    spread = _weighted_sum(which, light[:, None, None] * offset[:, :, None] * offset[:, None, :],
-                           s) / total[:, None, None]
-    covariance = COVER * spread + (FILTER * cell) ** 2 * np.eye(3)
-    variance, axes = np.linalg.eigh(covariance)
+    s = int(kept.sum())
+    centre, variance, axes, total = _moments(which, point, light, s)
+    facing = np.where(groups[kept] % 2 == 1, -1.0, 1.0)  # towards the eyes of its light
+    centre += (SIDE_OFFSET * cell * facing)[:, None] * normal[groups[kept] // 2]
+    variance = COVER * variance + (FILTER * cell) ** 2
     axes[np.linalg.det(axes) < 0, :, 0] *= -1  # a rotation
     palette_weights = _weighted_sum(which, light[:, None] * colour, s) / total[:, None]
     sigma = _density(run, point)
@@ -225,11 +238,24 @@ def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarra
                   np.asarray(run.config.background, np.float64), source)
 
 
+def _moments(which: np.ndarray, point: np.ndarray, light: np.ndarray, n: int) -> tuple:
+    """The light-weighted centre (n, 3), the variances (n, 3) along the axes (n, 3, 3; the
+    columns, the least spread first) and the light (n,) of the (P, 3) ``point``s of each of
+    the ``n`` cells ``which`` (P,)."""
+    total = np.bincount(which, light, n)
+    centre = _weighted_sum(which, light[:, None] * point, n) / total[:, None]
+    offset = point - centre[which]
+    spread = _weighted_sum(which, light[:, None, None] * offset[:, :, None] * offset[:, None, :],
+                           n) / total[:, None, None]
+    variance, axes = np.linalg.eigh(spread)
+    return centre, np.maximum(variance, 0), axes, total
+
+
 def _weighted_sum(which: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """(n, ...) sums of ``values`` (P, ...) by cell ``which`` (P,)."""
-    out = np.zeros((n, *values.shape[1:]))
-    np.add.at(out, which, values)
-    return out
+    flat = values.reshape(len(values), -1)
+    return np.stack([np.bincount(which, column, n) for column in flat.T],
+                    1).reshape(n, *values.shape[1:])
 
 
 @torch.no_grad()
@@ -258,12 +284,11 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
     raw = np.sqrt(np.maximum(splats.scales.astype(np.float64) ** 2 - floor ** 2,
                              (0.01 * cell) ** 2))
     parameters = {
-        "centres": torch.tensor(splats.centres, dtype=torch.float64),
-        "scales": torch.tensor(np.log(raw), dtype=torch.float64),
-        "rotations": torch.tensor(splats.rotations, dtype=torch.float64),
-        "opacities": torch.tensor(np.log(splats.opacities / (1 - splats.opacities)),
-                                  dtype=torch.float64),
-        "weights": torch.tensor(splats.weights, dtype=torch.float64),
+        "centres": torch.tensor(splats.centres),
+        "scales": torch.tensor(np.log(raw), dtype=torch.float32),
+        "rotations": torch.tensor(splats.rotations),
+        "opacities": torch.tensor(np.log(splats.opacities / (1 - splats.opacities))),
+        "weights": torch.tensor(splats.weights),
     }
     simplex = splats.basis == Basis.ADDITIVE  # additive weights stay on it: a softmax
     if simplex:
@@ -385,17 +410,16 @@ def render_splats(splats: Splats, poses: np.ndarray, camera: Intrinsics,
 
 
 def _tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
-    """Centres, covariances, weights and opacities as float64 tensors."""
-    return (torch.as_tensor(splats.centres, dtype=torch.float64),
-            torch.as_tensor(splats.covariances()),
-            torch.as_tensor(splats.weights, dtype=torch.float64),
-            torch.as_tensor(splats.opacities, dtype=torch.float64))
+    """Centres, covariances, weights and opacities as float32 tensors."""
+    return (torch.as_tensor(splats.centres), torch.as_tensor(splats.covariances()).float(),
+            torch.as_tensor(splats.weights), torch.as_tensor(splats.opacities))
 
 
 def _draw(centres, covariances, values, opacities, pose: torch.Tensor,
           camera: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
     """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
-    splats' parameters)."""
+    splats' parameters). The transmittances are summed in float64, whatever the splats'
+    precision: a view's running sum spans all of its pairs."""
     h, w = camera.height, camera.width
     weights = torch.zeros(h * w, values.shape[1], dtype=values.dtype)
     opacity = torch.zeros(h * w, dtype=values.dtype)
@@ -404,13 +428,13 @@ def _draw(centres, covariances, values, opacities, pose: torch.Tensor,
         return weights, opacity
     pixel, splat, alpha = pairs
     # transmittance in front of each pair: a product over its pixel's earlier pairs
-    log_keep = torch.log1p(-alpha)
+    log_keep = torch.log1p(-alpha).double()
     running = torch.cumsum(log_keep, 0)
     starts = torch.ones_like(pixel, dtype=torch.bool)
     starts[1:] = pixel[1:] != pixel[:-1]
     first = torch.cummax(torch.where(starts, torch.arange(len(pixel)), 0), 0).values
     before = running - log_keep - (running[first] - log_keep[first])
-    contribution = torch.exp(before) * alpha
+    contribution = torch.exp(before).to(alpha.dtype) * alpha
     weights = weights.index_add(0, pixel, contribution[:, None] * values[splat])
     return weights, opacity.index_add(0, pixel, contribution)
 
@@ -418,6 +442,7 @@ def _draw(centres, covariances, values, opacities, pose: torch.Tensor,
 def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int = 32):
     """The (pixel, splat, alpha) pairs of one view above 1/255, sorted by pixel, then front
     to back; None when no splat shows."""
+    pose = pose.to(centres.dtype)
     rotation, origin = pose[:3, :3], pose[:3, 3]
     local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
     depth = -local[:, 2]
@@ -427,7 +452,7 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     fx, fy = camera.fx, camera.fy
     u = camera.cx + fx * local[:, 0] / depth
     v = camera.cy - fy * local[:, 1] / depth
-    jacobian = torch.zeros(len(depth), 2, 3, dtype=torch.float64)
+    jacobian = torch.zeros(len(depth), 2, 3, dtype=depth.dtype)
     jacobian[:, 0, 0] = fx / depth
     jacobian[:, 0, 2] = fx * local[:, 0] / depth ** 2
     jacobian[:, 1, 1] = -fy / depth
@@ -455,17 +480,26 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     px = x0[shown].long()[owner] + within % width[owner]
     py = y0[shown].long()[owner] + within // width[owner]
     ids = torch.nonzero(shown)[:, 0][owner]
-    dx = px + 0.5 - u[ids]
-    dy = py + 0.5 - v[ids]
-    pair_conic = conic[ids]
-    power = -0.5 * (pair_conic[:, 0] * dx * dx + 2 * pair_conic[:, 1] * dx * dy
-                    + pair_conic[:, 2] * dy * dy)
-    alpha = torch.clamp(opacities[index[ids]] * torch.exp(power), max=MAX_ALPHA)
-    visible = alpha >= 1 / 255
-    pixel = (py * camera.width + px)[visible]
-    nearness = depth.detach()[ids][visible]
-    order = torch.argsort(pixel + nearness / (nearness.max() * 2))  # by pixel, then depth
-    return pixel[order], index[ids][visible][order], alpha[visible][order]
+    # each splat's projection (u, v, conic, opacity): gathered with gradients only for the
+    # pairs that show, sorted by pixel, then front to back
+    table = torch.cat([u[:, None], v[:, None], conic, opacities[index][:, None]], 1)
+    with torch.no_grad():
+        visible = _alpha(table[ids], px, py) >= 1 / 255
+    ids, px, py = ids[visible], px[visible], py[visible]
+    pixel = py * camera.width + px
+    nearness = depth.detach()[ids].double()
+    order = torch.argsort(pixel + nearness / (nearness.max() * 2))
+    ids = ids[order]
+    return pixel[order], index[ids], _alpha(table[ids], px[order], py[order])
+
+
+def _alpha(pairs: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """(P,) opacity at pixels (``px``, ``py``) of splats projected as ``pairs`` (P, 6): centre
+    u, v, inverse covariance (a, b, c), peak opacity."""
+    dx = px + 0.5 - pairs[:, 0]
+    dy = py + 0.5 - pairs[:, 1]
+    power = -0.5 * (pairs[:, 2] * dx * dx + 2 * pairs[:, 3] * dx * dy + pairs[:, 4] * dy * dy)
+    return torch.clamp(pairs[:, 5] * torch.exp(power), max=MAX_ALPHA)
 
 
 def write_splats(splats: Splats, path: str | os.PathLike) -> None:
@@ -517,11 +551,12 @@ def read_splats(path: str | os.PathLike) -> Splats:
 SH_C0 = 0.28209479177387814
 
 
-def write_ply(splats: Splats, path: str | os.PathLike, palette: np.ndarray | None = None) -> None:
-    """Write the splats, coloured with ``palette``, as a 3D Gaussian splatting PLY (binary,
-    little endian): x, y, z, nx, ny, nz, f_dc_0..2 (degree-0 spherical harmonics), opacity
-    (logit), scale_0..2 (log), rot_0..3 (w, x, y, z), the layout splat viewers read."""
-    colours = splats.colours(palette).astype(np.float64)
+def write_ply(splats: Splats, path: str | os.PathLike, colours: np.ndarray | None = None) -> None:
+    """Write the splats with (S, 3) ``colours`` (default ``splats.colours()``) as a 3D
+    Gaussian splatting PLY (binary, little endian): x, y, z, nx, ny, nz, f_dc_0..2 (degree-0
+    spherical harmonics), opacity (logit), scale_0..2 (log), rot_0..3 (w, x, y, z), the
+    layout splat viewers read."""
+    colours = (splats.colours() if colours is None else colours).astype(np.float64)
     opacity = splats.opacities.astype(np.float64)
     fields = {
         "x": splats.centres[:, 0], "y": splats.centres[:, 1], "z": splats.centres[:, 2],

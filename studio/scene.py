@@ -25,7 +25,7 @@ from nerf_stage.editing import WeightRender, render_weights, write_gif
 from nerf_stage.fields import RGB
 from nerf_stage.regions import Region
 from nerf_stage.run import Run, load_run
-from nerf_stage.splats import Splats, cached_bake
+from nerf_stage.splats import Splats, cached_bake, write_ply
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
 
@@ -148,14 +148,23 @@ class SceneTarget:
     def export(self, path: str | os.PathLike, palette: np.ndarray, pose: np.ndarray,
                intrinsics: Intrinsics, views: int = 36, force: bool = False,
                regions: list[Region] = ()) -> list[Path]:
-        """A turntable GIF of ``views`` frames from ``pose``, recoloured with ``palette``
-        (inside ``regions`` only, when given)."""
+        """A turntable GIF of ``views`` frames from ``pose``, or the splats as a 3D Gaussian
+        splatting PLY (``nerf_stage.splats.write_ply``), as the suffix of ``path`` says,
+        recoloured with ``palette`` (inside ``regions`` only, when given)."""
         path = Path(path)
-        if path.suffix.lower() != ".gif":
-            raise InputError(f"a turntable is written as .gif, got {path}")
+        suffix = path.suffix.lower()
+        if suffix not in (".gif", ".ply"):
+            raise InputError(f"export a turntable as .gif or the splats as .ply, got {path}")
+        if suffix == ".ply" and self.splats is None:
+            raise InputError("this run has no splats to export (the studio opened it without "
+                             "them): export a turntable (.gif)")
         if not 1 <= views <= MAX_TURNTABLE:
             raise InputError(f"a turntable has 1 to {MAX_TURNTABLE} views, got {views}")
         check_writable([path], force)
+        if suffix == ".ply":
+            with atomic_outputs(force) as stage:
+                write_ply(self.splats, stage(path), self.splats.colours(palette, regions))
+            return [path]
         poses = turntable_poses(pose, self.centre, views)
         frames = np.concatenate([recoloured(self.render(p, intrinsics), palette, regions)
                                  for p in poses])

@@ -29,7 +29,7 @@ SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
 class SceneView:
     """A trained run on the page of ``studio`` (an ``app.Studio``), one ``Viewport`` a tab."""
 
-    export_label, export_button = "turntable GIF", "export turntable"
+    export_label, export_button = "turntable GIF or splats PLY", "export"
 
     def __init__(self, studio, target: SceneTarget):
         self.studio, self.target = studio, target
@@ -115,14 +115,9 @@ class SceneView:
     def splat_colours(self) -> np.ndarray:
         """(S, 3) the splats' colours for the palette shown, inside the region only when it
         is on (a splat is in when its centre is)."""
-        splats, palette = self.target.splats, self.studio.shown_palette
         region = None if self.studio.before.value else self.region()
-        if region is None:
-            return splats.colours(palette)
-        colours = splats.colours()
-        inside = region.contains(splats.centres)
-        colours[inside] = splats.colours(palette)[inside]
-        return colours
+        return self.target.splats.colours(self.studio.shown_palette,
+                                          [] if region is None else [region])
 
     def _drawer_changed(self) -> None:
         with self.studio.lock:

@@ -51,6 +51,16 @@ return Array.from(context.getImageData(0, 0, 64, 64).data).filter((v, i) => i % 
 """
 
 
+def screenshot(driver):
+    """(H, W, 3) uint8 array: the whole page as the browser shows it."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(driver.get_screenshot_as_png())).convert("RGB"))
+
+
 def thumbnail(driver):
     """(64, 64, 3) int array: the viewport shrunk, to compare whole frames; None before it
     draws."""

@@ -348,7 +348,11 @@ def test_scene_views_are_cached_and_recoloured_without_the_network(scene_run, mo
     assert np.allclose(image, np.clip(expected, 0, 1))
 
 
-def test_scene_turntable_export(scene_run, tmp_path):
+def test_scene_turntable_and_splat_exports(scene_run, tmp_path):
+    import trimesh
+
+    from nerf_stage.regions import Region
+    from nerf_stage.splats import SH_C0
     from studio.scene import SceneTarget
 
     target = SceneTarget.open(scene_run)
@@ -362,6 +366,12 @@ def test_scene_turntable_export(scene_run, tmp_path):
         target.export(gif, *args, views=3)
     with pytest.raises(InputError, match=".gif"):
         target.export(tmp_path / "turn.png", *args, views=3)
+    ply, edited = tmp_path / "scene.ply", target.palette[::-1]
+    nowhere = Region("box", (1e3, 1e3, 1e3), (1.0, 1.0, 1.0))  # the edit reaches no splat
+    assert target.export(ply, edited, *args[1:], regions=[nowhere]) == [ply]
+    table = trimesh.load(ply).metadata["_ply_raw"]["vertex"]["data"]
+    colours = np.stack([table[f"f_dc_{i}"] for i in range(3)], 1) * SH_C0 + 0.5
+    assert np.allclose(colours, target.splats.colours(), atol=1e-5)
 
 
 def test_a_hundred_images_open_without_reading_them(tmp_path, rng):
