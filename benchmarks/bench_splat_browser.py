@@ -39,6 +39,7 @@ from nerf_stage.splats import Splats, render_splats  # noqa: E402
 from palette_core.basis import n_terms  # noqa: E402
 from studio.app import Studio  # noqa: E402
 from studio.scene import SceneTarget  # noqa: E402
+from studio.scene_view import look_from_home  # noqa: E402
 from tests import browser  # noqa: E402
 
 #: Animation frames the page draws, counted from the next call of ``__frames.start()``.
@@ -92,9 +93,9 @@ def frame_rate(driver, server, centre: np.ndarray, seconds: float, frames: int =
     return driver.execute_script("return window.__frames.rate()")
 
 
-def bare_rate(driver, splats: Splats, centre: np.ndarray, home: np.ndarray,
-              seconds: float) -> float:
-    """The frame rate of a bare viser server that shows ``splats`` and nothing else."""
+def bare_rate(driver, splats: Splats, target: SceneTarget, seconds: float) -> float:
+    """The frame rate of a bare viser server that shows ``splats`` and nothing else, from
+    the studio's first camera for ``target``."""
     import viser
 
     with contextlib.redirect_stdout(sys.stderr):  # viser's banner
@@ -102,16 +103,11 @@ def bare_rate(driver, splats: Splats, centre: np.ndarray, home: np.ndarray,
     try:
         server.scene.add_gaussian_splats("/splats", splats.centres, splats.covariances(),
                                          splats.colours(), splats.opacities[:, None])
-        server.on_client_connect(lambda client: _look_from(client, home, centre))
+        server.on_client_connect(lambda client: look_from_home(client.camera, target))
         driver.get(f"http://127.0.0.1:{server.get_port()}")
-        return frame_rate(driver, server, centre, seconds)
+        return frame_rate(driver, server, target.centre, seconds)
     finally:
         server.stop()
-
-
-def _look_from(client, pose: np.ndarray, centre: np.ndarray) -> None:
-    client.camera.position = pose[:3, 3]
-    client.camera.look_at = centre
 
 
 def studio_rate(driver, target: SceneTarget, seconds: float) -> float:
@@ -149,9 +145,9 @@ def main() -> None:
     try:
         for count in args.counts:
             splats = random_splats(run, count, rng)
-            bare = bare_rate(driver, splats, baked.centre, baked.home_pose(), args.seconds)
-            ours = studio_rate(driver, SceneTarget(run, baked.path, splats, baked.home),
-                               args.seconds)
+            ours_target = SceneTarget(run, baked.path, splats, baked.home)
+            bare = bare_rate(driver, splats, ours_target, args.seconds)
+            ours = studio_rate(driver, ours_target, args.seconds)
             results["counts"][count] = {"bare_fps": bare, "studio_fps": ours}
             print(f"{count:>7} random splats: bare viser {bare:5.1f} fps, studio {ours:5.1f} fps,"
                   f" ratio {ours / bare:.2f} (target >= 0.8)", flush=True)
@@ -167,7 +163,7 @@ def bake(driver, target: SceneTarget, args) -> dict:
     """The run's own bake in the studio: its frame rate, palette edits timed, and the page
     drawn by the network (before splats) and by the splats from the home camera."""
     splats = target.splats
-    bare = bare_rate(driver, splats, target.centre, target.home_pose(), args.seconds)
+    bare = bare_rate(driver, splats, target, args.seconds)
     ours = studio_rate(driver, target, args.seconds)
     print(f"the run's bake, {len(splats)} splats: bare viser {bare:5.1f} fps, studio "
           f"{ours:5.1f} fps, ratio {ours / bare:.2f}")

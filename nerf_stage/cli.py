@@ -307,7 +307,7 @@ def _bake(args) -> int:
     with atomic_outputs(args.force) as stage:
         write_splats(splats, stage(output))
     print(f"wrote {len(splats)} splats to {output} ({output.stat().st_size / 2**20:.1f} MB); "
-          f"next: {PROG} export {output} --palette P.json -o scene.ply")
+          f"next: {PROG} export {args.output or args.rundir} --palette P.json -o scene.ply")
     return 0
 
 

@@ -95,12 +95,7 @@ class SceneView:
         return self.drawer.value == SPLATS
 
     def connect(self, client) -> None:
-        pose = self.target.home_pose()
-        eye = pose[:3, 3]
-        client.camera.fov = self.target.fov_y
-        client.camera.up_direction = (0.0, 1.0, 0.0)
-        client.camera.position = eye
-        client.camera.look_at = eye - pose[:3, 2] * np.linalg.norm(self.target.centre - eye)
+        look_from_home(client.camera, self.target)
         self.open_viewports()
         self.viewports[client.client_id] = Viewport(self.studio, self, client)
 
@@ -145,6 +140,16 @@ class SceneView:
         return list(self.viewports.values())
 
 
+def look_from_home(camera, target: SceneTarget) -> None:
+    """Put a tab's ``camera`` (viser's) at ``target``'s home camera, with its field of view."""
+    pose = target.home_pose()
+    eye = pose[:3, 3]
+    camera.fov = target.fov_y
+    camera.up_direction = (0.0, 1.0, 0.0)
+    camera.position = eye
+    camera.look_at = eye - pose[:3, 2] * np.linalg.norm(target.centre - eye)
+
+
 class Viewport:
     """One tab's view in scene mode: renders on camera moves, low resolution while the
     camera moves and at the training resolution once it stops; recolours without the
@@ -176,8 +181,9 @@ class Viewport:
             if not self.running:
                 return
             if self.view.splats_drawn:  # the browser draws; a still is gone once it moves
-                self.render = None
-                self.client.scene.set_background_image(None)
+                if self.render is not None:
+                    self.render = None
+                    self.client.scene.set_background_image(None)
                 continue
             self._draw(PREVIEW_ROWS)
             if not self.moved.wait(SETTLE_S):
