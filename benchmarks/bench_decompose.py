@@ -10,6 +10,7 @@ colour (a 5-bit bin covering at least 0.05 % of the pixels). Prints the table an
 the issue's targets, saves rows as JSON and an accuracy-versus-time plot.
 
     python benchmarks/bench_decompose.py [--out benchmarks/out] [--cases NAME ...]
+    python benchmarks/bench_decompose.py --profile [--reference CHECKOUT PYTHON]
 
 Reference (Tan, Echevarria, Gingold 2018, published RGBXY code on a 2-core
 machine): palette 4-13 s, weights 3-7 s; RMSE at K = 6 astronaut 1.43,
@@ -26,10 +27,12 @@ from pathlib import Path
 import numpy as np
 import skimage.color
 import skimage.data
+from PIL import Image
 
 from palette_core import ColourSet, LoadedImage, find_images, rgb_to_mvc_weights
 from palette_core.io import load_images
 from palette_core.palettes import palette_polytope
+from palette_core.polytope import polytope_rmse
 from palette_core.refine import binned_colours, common_colours
 
 PHOTOS = ["astronaut", "coffee", "chelsea", "rocket", "hubble_deep_field", "retina"]
@@ -91,11 +94,106 @@ def measure(colour_set: ColourSet, k: int, method: str) -> dict:
     }
 
 
+PROFILED = [("astronaut", 6), ("coffee", 6), ("coffee", 8), ("chelsea", 6), ("rocket", 6),
+            ("hubble_deep_field", 6)]
+
+
+def profile(photos: list[tuple[str, int]], reference: list[str] | None = None) -> None:
+    """The refined palette step by stage, in this process (best of 3, kernels compiled):
+    the hull simplification (its collapse LPs apart) and the refinement; then one fresh
+    ``palette-decompose`` process per photo (best of 3 wall times), split by the stage times
+    it prints, the rest being Python's start and the imports; with ``reference`` (a
+    checkout and its Python), the reference's palette step in a fresh process
+    (``reference_hull.py``, once) and its time over ours, in a fresh process and warm.
+    Run it with ``PYTHONPATH=<another checkout>`` to profile that code the same way."""
+    import subprocess
+    import sys
+    import tempfile
+
+    from palette_core import hull
+
+    solve = hull._solve_collapses
+    spent = [0.0]
+
+    def timed(*args):
+        start = time.perf_counter()
+        try:
+            return solve(*args)
+        finally:
+            spent[0] += time.perf_counter() - start
+
+    hull._solve_collapses = timed
+    print(f"{'photo':<18} {'K':>2} {'hull s':>7} {'of it LPs':>9} {'refine s':>8} {'RMSE':>6} "
+          f"| {'process s':>9} {'start+imports':>13} {'load':>5} {'palette':>7} {'weights':>7}"
+          + (f" | {'reference s':>11} {'x fresh':>7} {'x warm':>6}" if reference else ""))
+    with tempfile.TemporaryDirectory() as folder:
+        for name, k in photos:
+            colour_set = ColourSet.from_images([photo(name)])
+            colours, counts = colour_set.colours, colour_set.counts
+            palette_polytope(colours, counts, k)  # compile
+            best = {}
+            for _ in range(3):
+                spent[0] = 0.0
+                start = time.perf_counter()
+                hull.extract_palette(colours, counts, k)
+                hull_s, lp_s = time.perf_counter() - start, spent[0]
+                start = time.perf_counter()
+                poly = palette_polytope(colours, counts, k)
+                refine_s = time.perf_counter() - start - hull_s
+                if not best or hull_s + refine_s < best["hull"] + best["refine"]:
+                    best = {"hull": hull_s, "lp": lp_s, "refine": refine_s}
+            rmse = polytope_rmse(colours, counts, poly)
+            png = Path(folder) / f"{name}.png"
+            Image.fromarray(photo(name).pixels).save(png)
+            runs = []
+            for _ in range(3):
+                start = time.perf_counter()
+                done = subprocess.run([sys.executable, "-m", "palette_core.cli.decompose",
+                                       str(png), "-k", str(k), "-o", str(Path(folder) / "w.npz"),
+                                       "--force"], capture_output=True, text=True, check=True,
+                                      cwd=folder)  # not this checkout's palette_core
+                runs.append((time.perf_counter() - start, done.stdout))
+            wall, stdout = min(runs)
+            stages = dict(part.split()[:2] for part in
+                          stdout.split("time: ")[1].splitlines()[0].split(", "))
+            stages = {key: float(value) for key, value in stages.items()}
+            print(f"{name:<18} {k:>2} {best['hull']:>7.3f} {best['lp']:>9.3f} "
+                  f"{best['refine']:>8.3f} {rmse:>6.3f} | {wall:>9.2f} "
+                  f"{wall - sum(stages.values()):>13.2f} {stages['load']:>5.2f} "
+                  f"{stages['palette']:>7.2f} {stages['weights']:>7.2f}"
+                  + (_versus_reference(reference, png, k, folder, stages["palette"],
+                                       best["hull"] + best["refine"]) if reference else ""),
+                  flush=True)
+
+
+def _versus_reference(reference: list[str], png: Path, k: int, folder: str, fresh: float,
+                      warm: float) -> str:
+    """The reference's palette time for ``png`` and how many times ours it is."""
+    import subprocess
+
+    checkout, python = reference
+    done = subprocess.run([python, str(Path(__file__).parent / "reference_hull.py"), checkout,
+                           str(png), str(k), str(Path(folder) / "hull.obj")],
+                          capture_output=True, text=True, check=True, cwd=folder)
+    seconds = float(done.stdout.split("palette ")[1].split()[0])
+    return f" | {seconds:>11.2f} {seconds / fresh:>7.0f} {seconds / warm:>6.0f}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="benchmarks/out", help="folder for the plot and JSON")
     parser.add_argument("--cases", nargs="+", default=None, help="photo or set names")
+    parser.add_argument("--profile", action="store_true",
+                        help="only the palette step's stages and a fresh palette-decompose "
+                             "process per photo (profile())")
+    parser.add_argument("--reference", nargs=2, metavar=("CHECKOUT", "PYTHON"),
+                        help="with --profile: time the reference hull simplification too "
+                             "(benchmarks/reference_hull.py) from a clone of "
+                             "CraGL/fastLayerDecomposition, run by PYTHON")
     args = parser.parse_args()
+    if args.profile:
+        profile(PROFILED, args.reference)
+        return
 
     warm = ColourSet.from_images([photo("chelsea")])  # compile the kernels before timing
     for method in METHODS:
