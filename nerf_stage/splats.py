@@ -472,14 +472,16 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     shown = (x1 > x0) & (y1 > y0)
     if not shown.any():
         return None
-    width, height = (x1 - x0)[shown].long(), (y1 - y0)[shown].long()
+    drawn = torch.nonzero(shown)[:, 0]
+    drawn = drawn[torch.argsort(depth.detach()[drawn])]  # front to back: pairs come so
+    width, height = (x1 - x0)[drawn].long(), (y1 - y0)[drawn].long()
     count = width * height
-    owner = torch.repeat_interleave(torch.arange(int(shown.sum())), count)
+    owner = torch.repeat_interleave(torch.arange(len(drawn)), count)
     start = torch.cumsum(count, 0) - count
     within = torch.arange(int(count.sum())) - start[owner]
-    px = x0[shown].long()[owner] + within % width[owner]
-    py = y0[shown].long()[owner] + within // width[owner]
-    ids = torch.nonzero(shown)[:, 0][owner]
+    px = x0[drawn].long()[owner] + within % width[owner]
+    py = y0[drawn].long()[owner] + within // width[owner]
+    ids = drawn[owner]
     # each splat's projection (u, v, conic, opacity): gathered with gradients only for the
     # pairs that show, sorted by pixel, then front to back
     table = torch.cat([u[:, None], v[:, None], conic, opacities[index][:, None]], 1)
@@ -487,8 +489,7 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
         visible = _alpha(table[ids], px, py) >= 1 / 255
     ids, px, py = ids[visible], px[visible], py[visible]
     pixel = py * camera.width + px
-    nearness = depth.detach()[ids].double()
-    order = torch.argsort(pixel + nearness / (nearness.max() * 2))
+    order = torch.sort(pixel, stable=True).indices  # by pixel, still front to back
     ids = ids[order]
     return pixel[order], index[ids], _alpha(table[ids], px[order], py[order])
 
