@@ -3,18 +3,19 @@ palette weights of the light it sends, so that recolouring stays ``weights @ bas
 splat (docs/splats.md, format ``palette-splats/1`` in docs/formats.md).
 
 The bake keeps only what the training views need. Their pixels are rendered with the
-samples their light comes from (``regions.PixelSamples``); every sample in front of its
-pixel's median termination adds its compositing weight, its position and its pixel's
-palette weights (divided by the pixel's opacity) to a cell of a grid over the scene box,
-cells as large as a training pixel where the light stops. A cell where at least
-``MIN_LIGHT`` of a pixel's light stops becomes one Gaussian: at the light-weighted mean of
-its samples, shaped by their spread (flat on a surface, which the rays reach all over it),
-scaled up to cover its cell and no thinner than ``FILTER`` cells, with the light-weighted
-mean palette weights, and opaque as the field's density across a cell makes it (the
-light-weighted mean density of its samples; at least ``MIN_ALPHA``). Space no training ray
-ends in (floaters that only views off the rig would see, the inside of objects) gets no
-splat. The grid is made coarser until at most ``max_splats`` cells are kept. ``refine``
-then fits the splats to the network's weight renders of the training views.
+samples their light comes from (``regions.PixelSamples``); each pixel adds one point, its
+median termination (where its ray reaches half of its light), with its opacity as its light
+and its palette weights (divided by that opacity), to a cell of a grid over the scene box,
+cells as large as a training pixel where the light stops. The points of a cell are split
+by the side of its surface they were seen from (a wall seen from both sides). A cell side
+where at least ``MIN_LIGHT`` of a pixel's light stops becomes one Gaussian: at the
+light-weighted mean of its points, moved ``SIDE_OFFSET`` cells towards its side, shaped by
+their spread (flat on a surface), scaled up to cover its cell and no thinner than
+``FILTER`` cells, with the light-weighted mean palette weights, and opaque as the field's
+density across a cell makes it (at least ``MIN_ALPHA``). Space no training ray ends in
+(floaters that only views off the rig would see, the inside of objects) gets no splat. The
+grid is made coarser until at most ``max_splats`` cells are kept. ``refine`` then fits the
+splats to the network's weight renders of the training views.
 
 ``render_splats`` draws a bake as weight images (EWA splatting, sorted front to back, as
 3D Gaussian splatting does), which recolour like any weight render.
@@ -52,7 +53,7 @@ from .run import load_run, run_source
 SPLAT_FORMAT = "palette-splats/1"
 MAX_SPLATS = 50_000
 MIN_LIGHT = 0.5  # of a pixel's light (summed over the training views) that a kept cell stops
-COVER = 1.5  # the samples' spread in a cell is scaled by this
+COVER = 1.5  # the points' spread in a cell is scaled by this
 #: A cell's splats of light from either side of its surface (a wall seen from both sides) are
 #: moved this far (cells) towards their side, so that each covers the other from its side.
 SIDE_OFFSET = 0.25
@@ -184,9 +185,9 @@ def cached_bake(run, rundir: str | os.PathLike, progress: bool = True, **options
 
 def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarray,
                   opacity: np.ndarray, samples, source: dict, max_splats: int) -> Splats:
-    """The first splats: one a grid cell where the training views' light stops (module
-    docstring); the cells start as large as a pixel where the light stops (the median over
-    the samples)."""
+    """The first splats: one a grid cell and side where the training views' light stops
+    (module docstring); the cells start as large as a pixel where the light stops (the
+    median over the points)."""
     m = weights.shape[-1]
     straight = (weights / np.maximum(opacity, 1e-6)[..., None]).reshape(-1, m)
     box = run.box
