@@ -26,6 +26,8 @@ import numpy as np
 import skimage.data
 from PIL import Image
 
+from palette_core.outputs import atomic_outputs, publish_folder
+
 PHOTOS = ["astronaut", "coffee", "chelsea", "rocket", "hubble_deep_field", "retina"]
 TILE = 256
 
@@ -119,14 +121,15 @@ def main() -> None:
     for size in args.sizes:
         if size >= 1000:
             source = data / "video.mp4"
-            if not source.exists():
-                data.mkdir(parents=True, exist_ok=True)
-                make_video(source, size // 2, rng)
+            if not source.exists():  # written beside it, renamed when complete
+                with atomic_outputs() as stage:
+                    make_video(stage(source), size // 2, rng)
             label = f"{size // 2} frames 1080p"
         else:
             source = data / f"jpegs_{size}"
             if not source.exists():
-                make_jpegs(source, size // 2, rng)
+                with publish_folder(source) as staging:
+                    make_jpegs(staging, size // 2, rng)
             label = f"{size // 2} JPEGs of 2 MP"
         for workers in (None, 2):
             row = run([str(source)], data, workers) | {"collection": label}

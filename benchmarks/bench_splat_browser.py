@@ -34,7 +34,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_studio import dominant_colour, summary, time_edits  # noqa: E402
 
-from nerf_stage.run import load_run  # noqa: E402
 from nerf_stage.splats import Splats, render_splats  # noqa: E402
 from palette_core.basis import n_terms  # noqa: E402
 from studio.app import Studio  # noqa: E402
@@ -53,10 +52,10 @@ window.__frames = counter;
 TURNS_PER_SECOND = 20
 
 
-def random_splats(run, count: int, rng: np.random.Generator) -> Splats:
-    """``count`` splats inside the run's occupied bounds, each a few thousandths of them
-    wide."""
-    bounds = run.box.centre + run.box.scale * run.occupancy.bounds()
+def random_splats(target: SceneTarget, count: int, rng: np.random.Generator) -> Splats:
+    """``count`` splats inside the occupied bounds of ``target``'s run, each a few
+    thousandths of them wide."""
+    run, bounds = target.run, target.bounds
     size = float(np.ptp(bounds, 0).max())
     q = rng.normal(size=(count, 4))
     m = n_terms(len(run.palette), run.basis, run.order)
@@ -136,7 +135,6 @@ def main() -> None:
         sys.exit(f"no run at {args.run} (make demo trains one; or --run RUN)")
     width, height = map(int, args.window.split("x"))
     args.out.mkdir(parents=True, exist_ok=True)
-    run = load_run(args.run)
     baked = SceneTarget.open(args.run)  # bakes once, then reads RUN/splats.npz
     rng = np.random.default_rng(0)
     driver = browser.chromium(width, height)
@@ -144,8 +142,8 @@ def main() -> None:
     results = {"counts": {}}
     try:
         for count in args.counts:
-            splats = random_splats(run, count, rng)
-            ours_target = SceneTarget(run, baked.path, splats, baked.home)
+            splats = random_splats(baked, count, rng)
+            ours_target = SceneTarget(baked.run, baked.path, splats, baked.home)
             bare = bare_rate(driver, splats, ours_target, args.seconds)
             ours = studio_rate(driver, ours_target, args.seconds)
             results["counts"][count] = {"bare_fps": bare, "studio_fps": ours}
