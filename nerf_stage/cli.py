@@ -84,9 +84,10 @@ def _add_bake(commands) -> None:
                            "RUNDIR read")
     bake.add_argument("--max-splats", type=int, default=MAX_SPLATS,
                       help=f"at most this many splats (default {MAX_SPLATS})")
-    bake.add_argument("--refine-steps", type=int, default=REFINE_STEPS,
-                      help=f"views fitted after the first splats (default {REFINE_STEPS}; 0: "
-                           "none)")
+    bake.add_argument("--refine-steps", type=int,
+                      help=f"views fitted after the first splats (default "
+                           f"{REFINE_STEPS['cpu']} on the CPU, {REFINE_STEPS['cuda']} with "
+                           "CUDA; 0: none)")
     bake.add_argument("--force", action="store_true", help="overwrite FILE")
     bake.set_defaults(run=_bake)
     export = commands.add_parser(

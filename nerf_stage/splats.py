@@ -11,7 +11,8 @@ by the side of its surface they were seen from (a wall seen from both sides). A 
 where at least ``MIN_LIGHT`` of a pixel's light stops becomes one Gaussian: at the
 light-weighted mean of its points, moved ``SIDE_OFFSET`` cells towards its side, shaped by
 their spread (flat on a surface), scaled up to cover its cell and no thinner than
-``FILTER`` cells, with the light-weighted mean palette weights, and opaque as the field's
+``FILTER`` cells (``FILTER_NORMAL`` along the normal), with the light-weighted mean palette
+weights, and opaque as the field's
 density across a cell makes it (at least ``MIN_ALPHA``). Space no training ray ends in
 (floaters that only views off the rig would see, the inside of objects) gets no splat. The
 grid is made coarser until at most ``max_splats`` cells are kept. ``refine`` then fits the
@@ -48,7 +49,7 @@ from palette_core.stack import NpzReader
 from .cameras import Intrinsics
 from .fields import RGB
 from .regions import Region
-from .run import load_run, run_source
+from .run import default_device, load_run, run_source
 
 SPLAT_FORMAT = "palette-splats/1"
 MAX_SPLATS = 50_000
@@ -57,13 +58,22 @@ COVER = 1.5  # the points' spread in a cell is scaled by this
 #: A cell's splats of light from either side of its surface (a wall seen from both sides) are
 #: moved this far (cells) towards their side, so that each covers the other from its side.
 SIDE_OFFSET = 0.25
-#: Smallest standard deviation along any axis, in cells (about a training pixel where the
-#: light stops): a 3D smoothing filter (Mip-Splatting), so that splats fitted at the
-#: training views' resolution leave no holes where a browser draws them finer.
+#: Smallest standard deviations, in cells (about a training pixel where the light stops): a
+#: 3D smoothing filter (Mip-Splatting). ``FILTER`` along a splat's two widest axes, so that
+#: splats fitted at the training views' resolution leave no holes where a browser draws
+#: them finer; ``FILTER_NORMAL`` along its thinnest (a surface's normal), so that a surface
+#: seen edge-on does not spill over what lies behind it (docs/splats.md).
 FILTER = 0.4
+FILTER_NORMAL = 0.1
 MIN_ALPHA, MAX_ALPHA = 0.05, 0.99  # the first splats' opacities (``refine`` moves them)
 LOW_PASS = 0.3  # pixels^2 added to every projected covariance (3D Gaussian splatting)
-REFINE_STEPS = 500  # views drawn and fitted by ``refine``
+#: Pairs behind which less light than this is left are not drawn (3D Gaussian splatting's
+#: early stop): a pixel changes by less than this.
+MIN_TRANSMITTANCE = 1e-4
+#: Views drawn and fitted by ``refine`` on the CPU and on a CUDA device, where a step takes
+#: about 15 ms (H200) and the steps past 500 still gain 1-2 dB on the training ring
+#: (docs/splats.md).
+REFINE_STEPS = {"cpu": 500, "cuda": 3000}
 #: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
 #: logits, palette weights (or their logits, for the additive basis). Chosen on clay-twins
 #: (docs/splats.md): the first rates tried (a fifth of a cell a step for the centres, two to
@@ -131,11 +141,13 @@ class Splats:
 
 
 def bake(run, views: np.ndarray, cameras: list[Intrinsics] | None, source: dict,
-         max_splats: int = MAX_SPLATS, refine_steps: int = REFINE_STEPS,
+         max_splats: int = MAX_SPLATS, refine_steps: int | None = None,
          progress: bool = True, seed: int = 0) -> Splats:
     """Bake ``run`` from its training ``views`` (N, 4, 4) (module docstring), then refine
     the splats against the network's weight renders of those views for ``refine_steps``
-    (``refine``)."""
+    (``refine``; by default ``REFINE_STEPS`` of the device)."""
+    if refine_steps is None:
+        refine_steps = REFINE_STEPS.get(default_device().type, REFINE_STEPS["cpu"])
     if not 1 <= max_splats <= 10_000_000:
         raise InputError(f"max splats must be in [1, 10000000], got {max_splats}")
     if not 0 <= refine_steps <= 1_000_000:
@@ -151,7 +163,7 @@ def bake(run, views: np.ndarray, cameras: list[Intrinsics] | None, source: dict,
 
 
 def bake_run(rundir: str | os.PathLike, max_splats: int = MAX_SPLATS,
-             refine_steps: int = REFINE_STEPS, progress: bool = True, run=None,
+             refine_steps: int | None = None, progress: bool = True, run=None,
              dataset=None) -> Splats:
     """Bake the run in ``rundir`` (loaded, unless ``run`` is given) from the training views of
     its dataset (read, unless ``dataset`` is given; ``bake``); its ``source`` says which run
@@ -226,7 +238,7 @@ def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarra
     centre, variance, axes, total = _moments(which, point, light, s)
     facing = np.where(groups[kept] % 2 == 1, -1.0, 1.0)  # towards the eyes of its light
     centre += (SIDE_OFFSET * cell * facing)[:, None] * normal[groups[kept] // 2]
-    variance = COVER * variance + (FILTER * cell) ** 2
+    variance = COVER * variance + (np.array([FILTER_NORMAL, FILTER, FILTER]) * cell) ** 2
     axes[np.linalg.det(axes) < 0, :, 0] *= -1  # a rotation
     palette_weights = _weighted_sum(which, light[:, None] * colour, s) / total[:, None]
     sigma = _density(run, point)
@@ -274,15 +286,18 @@ def _density(run, points: np.ndarray) -> np.ndarray:
 
 
 def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights: np.ndarray,
-           opacity: np.ndarray, steps: int, progress: bool = True, seed: int = 0) -> Splats:
+           opacity: np.ndarray, steps: int, progress: bool = True, seed: int = 0,
+           device: torch.device | None = None) -> Splats:
     """Fit the splats to weight renders: each step draws one of ``views`` (N, 4, 4) with its
     camera, chosen at random, and takes an Adam step on the squared error of its
     (N, H, W, M) ``weights`` and (N, H, W) ``opacity`` (the network's renders: any viewpoint
     would do). Additive weights stay non-negative and sum to one (a softmax). Splats whose
-    opacity falls below 1/255 are dropped."""
+    opacity falls below 1/255 are dropped. Runs on ``device`` (CUDA when present)."""
+    device = device or default_device()
     cell = splats.source["cell"]
-    floor = FILTER * cell
-    raw = np.sqrt(np.maximum(splats.scales.astype(np.float64) ** 2 - floor ** 2,
+    floors = np.full(splats.scales.shape, FILTER * cell)
+    floors[np.arange(len(floors)), np.argmin(splats.scales, 1)] = FILTER_NORMAL * cell
+    raw = np.sqrt(np.maximum(splats.scales.astype(np.float64) ** 2 - floors ** 2,
                              (0.01 * cell) ** 2))
     parameters = {
         "centres": torch.tensor(splats.centres),
@@ -294,8 +309,8 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
     simplex = splats.basis == Basis.ADDITIVE  # additive weights stay on it: a softmax
     if simplex:
         parameters["weights"] = torch.log(parameters["weights"].clamp(min=1e-6))
-    for tensor in parameters.values():
-        tensor.requires_grad_(True)
+    parameters = {name: tensor.to(device).requires_grad_(True)
+                  for name, tensor in parameters.items()}
     scale = {"centres": cell}
     optimiser = torch.optim.Adam([{"params": [tensor], "lr": LEARNING_RATES[name]
                                    * scale.get(name, 1.0)}
@@ -305,12 +320,13 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
     bar = tqdm(range(steps), desc="refine splats", unit="step", disable=not progress)
     for _ in bar:
         i = int(torch.randint(len(views), (1,), generator=generator))
-        drawn, covered = _draw(parameters["centres"], _covariances(parameters, floor),
+        drawn, covered = _draw(parameters["centres"], _covariances(parameters, cell),
                                _weights(parameters, simplex),
                                torch.sigmoid(parameters["opacities"]),
-                               torch.as_tensor(views[i]), cameras[i])
-        loss = (torch.mean((drawn - torch.as_tensor(weights[i]).view(-1, m)) ** 2)
-                + torch.mean((covered - torch.as_tensor(opacity[i]).view(-1)) ** 2))
+                               torch.as_tensor(views[i], device=device), cameras[i])
+        loss = (torch.mean((drawn - torch.as_tensor(weights[i], device=device).view(-1, m)) ** 2)
+                + torch.mean((covered - torch.as_tensor(opacity[i], device=device).view(-1))
+                             ** 2))
         if not loss.requires_grad:  # no splat shows in this view
             continue
         optimiser.zero_grad()
@@ -318,15 +334,16 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
         optimiser.step()
         bar.set_postfix(loss=f"{loss.item():.2e}", refresh=False)
     with torch.no_grad():
-        alpha = torch.sigmoid(parameters["opacities"]).numpy()
+        alpha = torch.sigmoid(parameters["opacities"]).cpu().numpy()
         keep = alpha >= 1 / 255
-        rotations = parameters["rotations"].numpy()[keep]
+        rotations = parameters["rotations"].cpu().numpy()[keep]
         refined = Splats(
-            parameters["centres"].numpy()[keep].astype(np.float32),
-            _scales(parameters, floor).numpy()[keep].astype(np.float32),
+            parameters["centres"].cpu().numpy()[keep].astype(np.float32),
+            _scales(parameters, cell).cpu().numpy()[keep].astype(np.float32),
             (rotations / np.linalg.norm(rotations, axis=1, keepdims=True)).astype(np.float32),
             np.clip(alpha[keep], 1 / 255, MAX_ALPHA).astype(np.float32),
-            _weights(parameters, simplex).numpy()[keep].astype(np.float32), splats.palette,
+            _weights(parameters, simplex).cpu().numpy()[keep].astype(np.float32),
+            splats.palette,
             splats.basis, splats.order, splats.background,
             {**splats.source, "refine_steps": steps})
     return refined
@@ -337,16 +354,19 @@ def _weights(parameters: dict, simplex: bool) -> torch.Tensor:
     return torch.softmax(parameters["weights"], 1) if simplex else parameters["weights"]
 
 
-def _scales(parameters: dict, floor: float) -> torch.Tensor:
-    """(S, 3) standard deviations of ``refine``'s log scales, with the ``FILTER`` ``floor``
-    added in quadrature."""
-    return torch.sqrt(torch.exp(2 * parameters["scales"]) + floor ** 2)
+def _scales(parameters: dict, cell: float) -> torch.Tensor:
+    """(S, 3) standard deviations of ``refine``'s log scales, with the filter added in
+    quadrature: ``FILTER`` cells, ``FILTER_NORMAL`` along the thinnest axis."""
+    variances = torch.exp(2 * parameters["scales"])
+    floors = torch.full_like(variances, (FILTER * cell) ** 2).scatter(
+        1, variances.detach().argmin(1, keepdim=True), (FILTER_NORMAL * cell) ** 2)
+    return torch.sqrt(variances + floors)
 
 
-def _covariances(parameters: dict, floor: float) -> torch.Tensor:
+def _covariances(parameters: dict, cell: float) -> torch.Tensor:
     """(S, 3, 3) covariances R diag(s^2) R^T of ``refine``'s parameters (``_scales``,
     quaternions R)."""
-    return covariances(parameters["rotations"], _scales(parameters, floor))
+    return covariances(parameters["rotations"], _scales(parameters, cell))
 
 
 def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -419,30 +439,37 @@ def _tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
 def _draw(centres, covariances, values, opacities, pose: torch.Tensor,
           camera: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
     """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
-    splats' parameters). The transmittances are summed in float64, whatever the splats'
-    precision: a view's running sum spans all of its pairs."""
+    splats' parameters)."""
     h, w = camera.height, camera.width
-    weights = torch.zeros(h * w, values.shape[1], dtype=values.dtype)
-    opacity = torch.zeros(h * w, dtype=values.dtype)
+    weights = values.new_zeros(h * w, values.shape[1])
+    opacity = values.new_zeros(h * w)
     pairs = _pairs(centres, covariances, opacities, pose, camera)
     if pairs is None:
         return weights, opacity
     pixel, splat, alpha = pairs
-    # transmittance in front of each pair: a product over its pixel's earlier pairs
+    contribution = _transmittance(pixel, alpha) * alpha
+    weights = weights.index_add(0, pixel, contribution[:, None] * values.index_select(0, splat))
+    return weights, opacity.index_add(0, pixel, contribution)
+
+
+def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """(P,) light left in front of each pair (``pixel``, ``alpha``), sorted by pixel, then
+    front to back: a product over its pixel's earlier pairs, summed as logarithms in float64
+    (a view's running sum spans all of its pairs)."""
     log_keep = torch.log1p(-alpha).double()
     running = torch.cumsum(log_keep, 0)
     starts = torch.ones_like(pixel, dtype=torch.bool)
     starts[1:] = pixel[1:] != pixel[:-1]
-    first = torch.cummax(torch.where(starts, torch.arange(len(pixel)), 0), 0).values
+    first = torch.cummax(torch.where(starts, torch.arange(len(pixel), device=pixel.device), 0),
+                         0).values
     before = running - log_keep - (running[first] - log_keep[first])
-    contribution = torch.exp(before).to(alpha.dtype) * alpha
-    weights = weights.index_add(0, pixel, contribution[:, None] * values[splat])
-    return weights, opacity.index_add(0, pixel, contribution)
+    return torch.exp(before).to(alpha.dtype)
 
 
 def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int = 32):
-    """The (pixel, splat, alpha) pairs of one view above 1/255, sorted by pixel, then front
-    to back; None when no splat shows."""
+    """The (pixel, splat, alpha) pairs of one view above 1/255 with at least
+    ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel, then front to
+    back; None when no splat shows."""
     pose = pose.to(centres.dtype)
     rotation, origin = pose[:3, :3], pose[:3, 3]
     local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
@@ -453,7 +480,7 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     fx, fy = camera.fx, camera.fy
     u = camera.cx + fx * local[:, 0] / depth
     v = camera.cy - fy * local[:, 1] / depth
-    jacobian = torch.zeros(len(depth), 2, 3, dtype=depth.dtype)
+    jacobian = depth.new_zeros(len(depth), 2, 3)
     jacobian[:, 0, 0] = fx / depth
     jacobian[:, 0, 2] = fx * local[:, 0] / depth ** 2
     jacobian[:, 1, 1] = -fy / depth
@@ -463,13 +490,14 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     a, b, c = projected[:, 0, 0] + LOW_PASS, projected[:, 0, 1], projected[:, 1, 1] + LOW_PASS
     determinant = a * c - b * b
     conic = torch.stack([c, -b, a], 1) / determinant[:, None]  # the inverse, per splat
-    middle = (a + c).detach() / 2
-    extent = middle + torch.sqrt((middle ** 2 - determinant.detach()).clamp(min=0))
-    radius = torch.ceil(3 * torch.sqrt(extent)).clamp(max=reach)
-    x0 = (u.detach() - radius).floor().clamp(0, camera.width)
-    x1 = (u.detach() + radius).ceil().clamp(0, camera.width)
-    y0 = (v.detach() - radius).floor().clamp(0, camera.height)
-    y1 = (v.detach() + radius).ceil().clamp(0, camera.height)
+    # the box around the ellipse outside which a splat's alpha is below 1/255
+    level = torch.sqrt(2 * torch.log((255 * opacities[index].detach()).clamp(min=1)))
+    rx = (level * torch.sqrt(a.detach())).clamp(max=reach)
+    ry = (level * torch.sqrt(c.detach())).clamp(max=reach)
+    x0 = (u.detach() - rx).floor().clamp(0, camera.width)
+    x1 = (u.detach() + rx).ceil().clamp(0, camera.width)
+    y0 = (v.detach() - ry).floor().clamp(0, camera.height)
+    y1 = (v.detach() + ry).ceil().clamp(0, camera.height)
     shown = (x1 > x0) & (y1 > y0)
     if not shown.any():
         return None
@@ -477,9 +505,9 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     drawn = drawn[torch.argsort(depth.detach()[drawn])]  # front to back: pairs come so
     width, height = (x1 - x0)[drawn].long(), (y1 - y0)[drawn].long()
     count = width * height
-    owner = torch.repeat_interleave(torch.arange(len(drawn)), count)
+    owner = torch.repeat_interleave(torch.arange(len(drawn), device=drawn.device), count)
     start = torch.cumsum(count, 0) - count
-    within = torch.arange(int(count.sum())) - start[owner]
+    within = torch.arange(int(count.sum()), device=drawn.device) - start[owner]
     px = x0[drawn].long()[owner] + within % width[owner]
     py = y0[drawn].long()[owner] + within // width[owner]
     ids = drawn[owner]
@@ -487,12 +515,14 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     # pairs that show, sorted by pixel, then front to back
     table = torch.cat([u[:, None], v[:, None], conic, opacities[index][:, None]], 1)
     with torch.no_grad():
-        visible = _alpha(table[ids], px, py) >= 1 / 255
-    ids, px, py = ids[visible], px[visible], py[visible]
-    pixel = py * camera.width + px
-    order = torch.sort(pixel, stable=True).indices  # by pixel, still front to back
-    ids = ids[order]
-    return pixel[order], index[ids], _alpha(table[ids], px[order], py[order])
+        alpha = _alpha(table.index_select(0, ids), px, py)
+        visible = torch.nonzero(alpha >= 1 / 255)[:, 0]
+        pixel = py[visible] * camera.width + px[visible]
+        order = torch.sort(pixel, stable=True).indices  # by pixel, still front to back
+        shown = visible[order[_transmittance(pixel[order], alpha[visible][order])
+                              >= MIN_TRANSMITTANCE]]
+    ids, px, py = ids[shown], px[shown], py[shown]
+    return py * camera.width + px, index[ids], _alpha(table.index_select(0, ids), px, py)
 
 
 def _alpha(pairs: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:

@@ -22,6 +22,7 @@ from nerf_stage.splats import (  # noqa: E402
     covariances,
     matrix_quaternions,
     read_splats,
+    refine,
     render_splats,
     write_ply,
     write_splats,
@@ -82,6 +83,29 @@ def test_drawing_colours_is_recolouring_the_drawn_weights(hand_made, rng):
     assert torch.allclose(drawn.sum(1), covered, atol=1e-6)  # weights sum to the opacity
     views, opacity = render_splats(hand_made, POSE[None], CAMERA)
     assert views.shape == (1, 30, 40, 4) and np.allclose(opacity[0].ravel(), covered.numpy())
+
+
+def test_refining_fits_the_views_it_is_given(hand_made):
+    """Refining the hand-made splats towards a drawing of themselves recoloured lowers the
+    error, and keeps the weights on the simplex."""
+    target = Splats(**{**hand_made.__dict__, "weights": hand_made.weights[:, ::-1].copy()})
+    weights, opacity = render_splats(target, POSE[None], CAMERA)
+    before = np.abs(render_splats(hand_made, POSE[None], CAMERA)[0] - weights).mean()
+    refined = refine(hand_made, POSE[None], [CAMERA], weights, opacity, 40, progress=False,
+                     device=torch.device("cpu"))
+    after = np.abs(render_splats(refined, POSE[None], CAMERA)[0] - weights).mean()
+    assert after < 0.7 * before
+    assert np.allclose(refined.weights.sum(1), 1, atol=1e-5) and refined.weights.min() >= 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_refining_on_cuda_agrees_with_the_cpu(hand_made):
+    target = Splats(**{**hand_made.__dict__, "weights": hand_made.weights[:, ::-1].copy()})
+    weights, opacity = render_splats(target, POSE[None], CAMERA)
+    on = [refine(hand_made, POSE[None], [CAMERA], weights, opacity, 20, progress=False,
+                 device=torch.device(d)) for d in ("cpu", "cuda")]
+    for name in ("centres", "scales", "opacities", "weights"):
+        assert np.allclose(getattr(on[0], name), getattr(on[1], name), atol=1e-3), name
 
 
 def test_splats_are_drawn_front_to_back():
