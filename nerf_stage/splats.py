@@ -52,6 +52,9 @@ from .regions import Region
 from .run import default_device, load_run, run_source
 
 SPLAT_FORMAT = "palette-splats/1"
+#: How the splats were made, recorded in a bake's ``source``: a bake kept by ``cached_bake``
+#: from another version of this module is made again. Raise it when the bake changes.
+BAKE_VERSION = 3
 MAX_SPLATS = 50_000
 MIN_LIGHT = 0.5  # of a pixel's light (summed over the training views) that a kept cell stops
 COVER = 1.5  # the points' spread in a cell is scaled by this
@@ -174,8 +177,14 @@ def bake_run(rundir: str | os.PathLike, max_splats: int = MAX_SPLATS,
                          "weights to bake")
     dataset = dataset or run.dataset()
     train = dataset.indices("train")
-    return bake(run, dataset.poses[train], dataset.cameras(train), run_source(run, rundir),
+    return bake(run, dataset.poses[train], dataset.cameras(train), _bake_source(run, rundir),
                 max_splats, refine_steps, progress)
+
+
+def _bake_source(run, rundir: str | os.PathLike) -> dict:
+    """What a bake records of where it came from: the run (``run_source``) and
+    ``BAKE_VERSION``."""
+    return {**run_source(run, rundir), "bake_version": BAKE_VERSION}
 
 
 SPLAT_CACHE = "splats.npz"  # the bake the studio keeps in a run folder
@@ -183,11 +192,12 @@ SPLAT_CACHE = "splats.npz"  # the bake the studio keeps in a run folder
 
 def cached_bake(run, rundir: str | os.PathLike, progress: bool = True, **options) -> Splats:
     """The bake kept in ``rundir`` (``SPLAT_CACHE``) if it was made from ``run`` as it is
-    now, else a new one (``bake_run`` with ``options``), kept there for next time."""
+    now by this ``BAKE_VERSION``, else a new one (``bake_run`` with ``options``), kept there
+    for next time."""
     path = Path(rundir) / SPLAT_CACHE
     if path.is_file():
         kept = read_splats(path)
-        if all(kept.source.get(k) == v for k, v in run_source(run, rundir).items()):
+        if all(kept.source.get(k) == v for k, v in _bake_source(run, rundir).items()):
             return kept
     splats = bake_run(rundir, progress=progress, run=run, **options)
     with atomic_outputs(force=True) as stage:  # our own cache, of this run

@@ -9,16 +9,20 @@ import trimesh
 
 torch = pytest.importorskip("torch")
 
+from nerf_stage import splats as splat_module  # noqa: E402
 from nerf_stage.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.regions import Region  # noqa: E402
 from nerf_stage.run import load_run  # noqa: E402
 from nerf_stage.splats import (  # noqa: E402
+    BAKE_VERSION,
     SH_C0,
+    SPLAT_CACHE,
     Splats,
     _draw,
     _tensors,
     bake_run,
+    cached_bake,
     covariances,
     matrix_quaternions,
     read_splats,
@@ -68,6 +72,20 @@ def test_a_tiny_run_bakes_with_weights_on_the_simplex(additive_bake, scene_run):
     run = load_run(scene_run)
     low, high = run.box.centre - run.box.half, run.box.centre + run.box.half
     assert ((splats.centres >= low - 1) & (splats.centres <= high + 1)).all()
+
+
+def test_a_kept_bake_is_used_until_the_bake_changes(scene_run, tmp_path, monkeypatch):
+    rundir = tmp_path / "run"
+    shutil.copytree(scene_run, rundir)
+    run = load_run(rundir)
+    cached_bake(run, rundir, progress=False, refine_steps=1)
+    kept = (rundir / SPLAT_CACHE).stat().st_mtime_ns
+    cached_bake(run, rundir, progress=False, refine_steps=1)
+    assert (rundir / SPLAT_CACHE).stat().st_mtime_ns == kept
+    monkeypatch.setattr(splat_module, "BAKE_VERSION", BAKE_VERSION + 1)
+    assert cached_bake(run, rundir, progress=False,
+                       refine_steps=1).source["bake_version"] == BAKE_VERSION + 1
+    assert read_splats(rundir / SPLAT_CACHE).source["bake_version"] == BAKE_VERSION + 1
 
 
 def test_drawing_colours_is_recolouring_the_drawn_weights(hand_made, rng):
