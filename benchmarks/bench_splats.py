@@ -9,12 +9,14 @@ away from the rig (``cameras.off_ring_poses``: above it, closer, farther), whose
 path tracer renders. Reported per scene: splats, file size, bake seconds, and PSNR of the
 network's render, of its diffuse part (``diffuse_render``: the network without its view
 dependence, which a splat's one set of weights cannot hold) and of the bake against the
-truth, and of the bake against the network, on and off the rig. Figure
+truth, and of the bake against the network, on and off the rig; then, at ``--scale`` times
+the training resolution (a browser draws the splats finer still), the PSNR of the network
+and of the bake against the truth path traced at that resolution. Figure
 ``OUT/splats.png``: per scene, truth, network and bake of the first test view, then of
-the first off-ring view.
+the first off-ring view (at ``--scale``).
 
     python benchmarks/bench_splats.py [--out benchmarks/out/simulated] [--scenes ...]
-                                      [--off-ring 6] [--refine-steps N] [--max-splats N]
+        [--off-ring 6] [--refine-steps N] [--max-splats N] [--scale 4]
 """
 
 from __future__ import annotations
@@ -82,6 +84,9 @@ def main() -> None:
     parser.add_argument("--refine-steps", type=int, help="default: the device's "
                         "(nerf_stage.splats.REFINE_STEPS)")
     parser.add_argument("--max-splats", type=int, default=MAX_SPLATS)
+    parser.add_argument("--scale", type=int, default=4,
+                        help="also score the views at this many times the training "
+                             "resolution, as a browser draws them (1: not)")
     args = parser.parse_args()
     results, rows, pictures = {}, [], []
     for scene in args.scenes:
@@ -103,6 +108,7 @@ def main() -> None:
         scores = {"splats": len(splats), "megabytes": megabytes, "bake_seconds": seconds}
         picture = []
         directions = -dataset.poses[dataset.indices("train")][::12, :3, 2]  # 9 of 100
+        big = cameras[0].upscaled(args.scale)
         for label, (where, real) in views.items():
             network = _recoloured(run, *run.render(where, False, cameras[0]), background)
             diffuse = _recoloured(run, *diffuse_render(run, where, cameras[0], directions),
@@ -112,17 +118,26 @@ def main() -> None:
                              "network_diffuse": mean_psnr(diffuse, real),
                              "bake": mean_psnr(baked, real),
                              "bake_vs_network": mean_psnr(baked, network)}
+            if args.scale > 1:  # the truth path traced at the finer resolution
+                real = truth(scene, where, (big.width, big.height), background)
+                network = _recoloured(run, *run.render(where, False, big), background)
+                baked = _recoloured(run, *render_splats(splats, where, big), background)
+                scores[label]["scaled"] = {"network": mean_psnr(network, real),
+                                           "bake": mean_psnr(baked, real)}
             picture += [real[0], network[0], baked[0]]
         results[scene] = scores
         rows.append([scene, len(splats), megabytes, seconds,
                      *[scores[v][k] for v in views for k in ("network", "network_diffuse",
-                                                            "bake", "bake_vs_network")]])
+                                                            "bake", "bake_vs_network")],
+                     *[scores[v].get("scaled", {}).get(k) for v in views
+                       for k in ("network", "bake")]])
         pictures.append(picture)
         print(f"{scene}: {rows[-1]}", flush=True)
     table("Splat bakes (PSNR dB against the truth, and of the bake against the network)",
           ["scene", "splats", "MB", "bake s", "ring: network", "ring: network diffuse",
            "ring: bake", "ring: bake vs network", "off ring: network",
-           "off ring: network diffuse", "off ring: bake", "off ring: bake vs network"], rows)
+           "off ring: network diffuse", "off ring: bake", "off ring: bake vs network",
+           *[f"{v} x{args.scale}: {k}" for v in views for k in ("network", "bake")]], rows)
     (args.out / "splats.json").write_text(json.dumps(results, indent=1))
     figure(pictures, args.out / "splats.png")
 

@@ -58,6 +58,11 @@ class Intrinsics:
         return Intrinsics(self.width // factor, self.height // factor, self.fx / factor,
                           self.fy / factor, self.cx / factor, self.cy / factor)
 
+    def upscaled(self, factor: int) -> Intrinsics:
+        """The camera of images ``factor`` times larger, from the same viewpoint."""
+        return Intrinsics(self.width * factor, self.height * factor, self.fx * factor,
+                          self.fy * factor, self.cx * factor, self.cy * factor)
+
     @classmethod
     def from_dict(cls, data, source: str) -> Intrinsics:
         """The camera of a checkpoint's ``intrinsics``: whole positive sizes of at most

@@ -11,8 +11,7 @@ by the side of its surface they were seen from (a wall seen from both sides). A 
 where at least ``MIN_LIGHT`` of a pixel's light stops becomes one Gaussian: at the
 light-weighted mean of its points, moved ``SIDE_OFFSET`` cells towards its side, shaped by
 their spread (flat on a surface), scaled up to cover its cell and no thinner than
-``FILTER`` cells (``FILTER_NORMAL`` along the normal), with the light-weighted mean palette
-weights, and opaque as the field's
+``FILTER`` cells, with the light-weighted mean palette weights, and opaque as the field's
 density across a cell makes it (at least ``MIN_ALPHA``). Space no training ray ends in
 (floaters that only views off the rig would see, the inside of objects) gets no splat. The
 grid is made coarser until at most ``max_splats`` cells are kept. ``refine`` then fits the
@@ -61,15 +60,16 @@ COVER = 1.5  # the points' spread in a cell is scaled by this
 #: A cell's splats of light from either side of its surface (a wall seen from both sides) are
 #: moved this far (cells) towards their side, so that each covers the other from its side.
 SIDE_OFFSET = 0.25
-#: Smallest standard deviations, in cells (about a training pixel where the light stops): a
-#: 3D smoothing filter (Mip-Splatting). ``FILTER`` along a splat's two widest axes, so that
-#: splats fitted at the training views' resolution leave no holes where a browser draws
-#: them finer; ``FILTER_NORMAL`` along its thinnest (a surface's normal), so that a surface
-#: seen edge-on does not spill over what lies behind it (docs/splats.md).
+#: Smallest standard deviation along any axis, in cells (about a training pixel where the
+#: light stops): a 3D smoothing filter (Mip-Splatting), so that splats fitted at the
+#: training views' resolution leave no holes where a browser draws them finer.
 FILTER = 0.4
-FILTER_NORMAL = 0.1
 MIN_ALPHA, MAX_ALPHA = 0.05, 0.99  # the first splats' opacities (``refine`` moves them)
-LOW_PASS = 0.3  # pixels^2 added to every projected covariance (3D Gaussian splatting)
+#: Pixels^2 added to every projected covariance: Mip-Splatting's 2D filter. (3D Gaussian
+#: splatting's 0.3, which viser adds at the screen's resolution, let splats fitted at the
+#: training views' resolution lean on that blur to cover surfaces: holes where a browser
+#: draws them finer; docs/splats.md.)
+LOW_PASS = 0.1
 #: Pairs behind which less light than this is left are not drawn (3D Gaussian splatting's
 #: early stop): a pixel changes by less than this.
 MIN_TRANSMITTANCE = 1e-4
@@ -248,7 +248,7 @@ def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarra
     centre, variance, axes, total = _moments(which, point, light, s)
     facing = np.where(groups[kept] % 2 == 1, -1.0, 1.0)  # towards the eyes of its light
     centre += (SIDE_OFFSET * cell * facing)[:, None] * normal[groups[kept] // 2]
-    variance = COVER * variance + (np.array([FILTER_NORMAL, FILTER, FILTER]) * cell) ** 2
+    variance = COVER * variance + (FILTER * cell) ** 2
     axes[np.linalg.det(axes) < 0, :, 0] *= -1  # a rotation
     palette_weights = _weighted_sum(which, light[:, None] * colour, s) / total[:, None]
     sigma = _density(run, point)
@@ -305,9 +305,8 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
     opacity falls below 1/255 are dropped. Runs on ``device`` (CUDA when present)."""
     device = device or default_device()
     cell = splats.source["cell"]
-    floors = np.full(splats.scales.shape, FILTER * cell)
-    floors[np.arange(len(floors)), np.argmin(splats.scales, 1)] = FILTER_NORMAL * cell
-    raw = np.sqrt(np.maximum(splats.scales.astype(np.float64) ** 2 - floors ** 2,
+    floor = FILTER * cell
+    raw = np.sqrt(np.maximum(splats.scales.astype(np.float64) ** 2 - floor ** 2,
                              (0.01 * cell) ** 2))
     parameters = {
         "centres": torch.tensor(splats.centres),
@@ -330,7 +329,7 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
     bar = tqdm(range(steps), desc="refine splats", unit="step", disable=not progress)
     for _ in bar:
         i = int(torch.randint(len(views), (1,), generator=generator))
-        drawn, covered = _draw(parameters["centres"], _covariances(parameters, cell),
+        drawn, covered = _draw(parameters["centres"], _covariances(parameters, floor),
                                _weights(parameters, simplex),
                                torch.sigmoid(parameters["opacities"]),
                                torch.as_tensor(views[i], device=device), cameras[i])
@@ -349,7 +348,7 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
         rotations = parameters["rotations"].cpu().numpy()[keep]
         refined = Splats(
             parameters["centres"].cpu().numpy()[keep].astype(np.float32),
-            _scales(parameters, cell).cpu().numpy()[keep].astype(np.float32),
+            _scales(parameters, floor).cpu().numpy()[keep].astype(np.float32),
             (rotations / np.linalg.norm(rotations, axis=1, keepdims=True)).astype(np.float32),
             np.clip(alpha[keep], 1 / 255, MAX_ALPHA).astype(np.float32),
             _weights(parameters, simplex).cpu().numpy()[keep].astype(np.float32),
@@ -364,19 +363,16 @@ def _weights(parameters: dict, simplex: bool) -> torch.Tensor:
     return torch.softmax(parameters["weights"], 1) if simplex else parameters["weights"]
 
 
-def _scales(parameters: dict, cell: float) -> torch.Tensor:
-    """(S, 3) standard deviations of ``refine``'s log scales, with the filter added in
-    quadrature: ``FILTER`` cells, ``FILTER_NORMAL`` along the thinnest axis."""
-    variances = torch.exp(2 * parameters["scales"])
-    floors = torch.full_like(variances, (FILTER * cell) ** 2).scatter(
-        1, variances.detach().argmin(1, keepdim=True), (FILTER_NORMAL * cell) ** 2)
-    return torch.sqrt(variances + floors)
+def _scales(parameters: dict, floor: float) -> torch.Tensor:
+    """(S, 3) standard deviations of ``refine``'s log scales, with the ``FILTER`` ``floor``
+    added in quadrature."""
+    return torch.sqrt(torch.exp(2 * parameters["scales"]) + floor ** 2)
 
 
-def _covariances(parameters: dict, cell: float) -> torch.Tensor:
+def _covariances(parameters: dict, floor: float) -> torch.Tensor:
     """(S, 3, 3) covariances R diag(s^2) R^T of ``refine``'s parameters (``_scales``,
     quaternions R)."""
-    return covariances(parameters["rotations"], _scales(parameters, cell))
+    return covariances(parameters["rotations"], _scales(parameters, floor))
 
 
 def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
