@@ -53,7 +53,7 @@ from .run import default_device, load_run, run_source
 SPLAT_FORMAT = "palette-splats/1"
 #: How the splats were made, recorded in a bake's ``source``: a bake kept by ``cached_bake``
 #: from another version of this module is made again. Raise it when the bake changes.
-BAKE_VERSION = 3
+BAKE_VERSION = 4
 MAX_SPLATS = 50_000
 MIN_LIGHT = 0.5  # of a pixel's light (summed over the training views) that a kept cell stops
 COVER = 1.5  # the points' spread in a cell is scaled by this
