@@ -74,8 +74,8 @@ LOW_PASS = 0.1
 #: early stop): a pixel changes by less than this.
 MIN_TRANSMITTANCE = 1e-4
 #: Views drawn and fitted by ``refine`` on the CPU and on a CUDA device, where a step takes
-#: about 15 ms (H200) and the steps past 500 still gain 1-2 dB on the training ring
-#: (docs/splats.md).
+#: about 15 ms (H200) and the steps past 500 still gain 1-2 dB on the training ring's test
+#: views (docs/splats.md).
 REFINE_STEPS = {"cpu": 500, "cuda": 3000}
 #: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
 #: logits, palette weights (or their logits, for the additive basis). Chosen on clay-twins
@@ -352,8 +352,7 @@ def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights
             (rotations / np.linalg.norm(rotations, axis=1, keepdims=True)).astype(np.float32),
             np.clip(alpha[keep], 1 / 255, MAX_ALPHA).astype(np.float32),
             _weights(parameters, simplex).cpu().numpy()[keep].astype(np.float32),
-            splats.palette,
-            splats.basis, splats.order, splats.background,
+            splats.palette, splats.basis, splats.order, splats.background,
             {**splats.source, "refine_steps": steps})
     return refined
 
