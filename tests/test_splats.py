@@ -103,11 +103,17 @@ def test_drawing_colours_is_recolouring_the_drawn_weights(hand_made, rng):
     assert views.shape == (1, 30, 40, 4) and np.allclose(opacity[0].ravel(), covered.numpy())
 
 
-def test_refining_fits_the_views_it_is_given(hand_made):
-    """Refining the hand-made splats towards a drawing of themselves recoloured lowers the
-    error, and keeps the weights on the simplex."""
+@pytest.fixture
+def reweighted_drawing(hand_made):
+    """(weights, opacity) of the hand-made splats drawn with their weights reversed."""
     target = Splats(**{**hand_made.__dict__, "weights": hand_made.weights[:, ::-1].copy()})
-    weights, opacity = render_splats(target, POSE[None], CAMERA)
+    return render_splats(target, POSE[None], CAMERA)
+
+
+def test_refining_fits_the_views_it_is_given(hand_made, reweighted_drawing):
+    """Refining the hand-made splats towards a drawing of themselves reweighted lowers the
+    error, and keeps the weights on the simplex."""
+    weights, opacity = reweighted_drawing
     before = np.abs(render_splats(hand_made, POSE[None], CAMERA)[0] - weights).mean()
     refined = refine(hand_made, POSE[None], [CAMERA], weights, opacity, 40, progress=False,
                      device=torch.device("cpu"))
@@ -117,9 +123,8 @@ def test_refining_fits_the_views_it_is_given(hand_made):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_refining_on_cuda_agrees_with_the_cpu(hand_made):
-    target = Splats(**{**hand_made.__dict__, "weights": hand_made.weights[:, ::-1].copy()})
-    weights, opacity = render_splats(target, POSE[None], CAMERA)
+def test_refining_on_cuda_agrees_with_the_cpu(hand_made, reweighted_drawing):
+    weights, opacity = reweighted_drawing
     on = [refine(hand_made, POSE[None], [CAMERA], weights, opacity, 20, progress=False,
                  device=torch.device(d)) for d in ("cpu", "cuda")]
     for name in ("centres", "scales", "opacities", "weights"):
