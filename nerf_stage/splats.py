@@ -508,14 +508,18 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
         return None
     drawn = torch.nonzero(shown)[:, 0]
     drawn = drawn[torch.argsort(depth.detach()[drawn])]  # front to back: pairs come so
-    width, height = (x1 - x0)[drawn].long(), (y1 - y0)[drawn].long()
-    count = width * height
-    owner = torch.repeat_interleave(torch.arange(len(drawn), device=drawn.device), count)
-    start = torch.cumsum(count, 0) - count
-    within = torch.arange(int(count.sum()), device=drawn.device) - start[owner]
-    px = x0[drawn].long()[owner] + within % width[owner]
-    py = y0[drawn].long()[owner] + within // width[owner]
-    ids = drawn[owner]
+    # the rows of each splat's box, and in each row the pixels inside its ellipse
+    row_splat, py = _spans(drawn, y0[drawn].long(), y1[drawn].long())
+    dy = py + 0.5 - v.detach()[row_splat]
+    ca, cb, cc = conic.detach()[row_splat].T
+    room = (cb * dy) ** 2 - ca * (cc * dy * dy - level[row_splat] ** 2)
+    half = torch.sqrt(room.clamp(min=0)) / ca
+    middle = u.detach()[row_splat] - 0.5 - cb * dy / ca  # pixel x + 0.5 - u = dx
+    first = torch.maximum(torch.ceil(middle - half), x0[row_splat]).long()
+    last = torch.minimum(torch.floor(middle + half), x1[row_splat] - 1).long()
+    row, px = _spans(torch.arange(len(py), device=py.device), first,
+                     torch.where(room >= 0, torch.maximum(last + 1, first), first))
+    ids, py = row_splat[row], py[row]
     # each splat's projection (u, v, conic, opacity): gathered with gradients only for the
     # pairs that show, sorted by pixel, then front to back
     table = torch.cat([u[:, None], v[:, None], conic, opacities[index][:, None]], 1)
@@ -528,6 +532,17 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
                               >= MIN_TRANSMITTANCE]]
     ids, px, py = ids[shown], px[shown], py[shown]
     return py * camera.width + px, index[ids], _alpha(table.index_select(0, ids), px, py)
+
+
+def _spans(owners: torch.Tensor, start: torch.Tensor,
+           stop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each of ``owners`` (N,) with the whole numbers from its ``start`` to its ``stop``
+    (N,; excluded), in order: (owner, number) pairs as two (P,) tensors."""
+    count = stop - start
+    which = torch.repeat_interleave(torch.arange(len(owners), device=owners.device), count)
+    offset = torch.arange(len(which), device=owners.device) - (torch.cumsum(count, 0)
+                                                              - count)[which]
+    return owners[which], start[which] + offset
 
 
 def _alpha(pairs: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
