@@ -467,7 +467,7 @@ def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     starts[1:] = pixel[1:] != pixel[:-1]
     first = torch.cummax(torch.where(starts, torch.arange(len(pixel), device=pixel.device), 0),
                          0).values
-    before = running - log_keep - (running[first] - log_keep[first])
+    before = running - log_keep - (running - log_keep).index_select(0, first)
     return torch.exp(before).to(alpha.dtype)
 
 
@@ -479,9 +479,9 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     rotation, origin = pose[:3, :3], pose[:3, 3]
     local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
     depth = -local[:, 2]
-    ahead = depth > 1e-3
-    local, depth, covariances = local[ahead], depth[ahead], covariances[ahead]
-    index = torch.nonzero(ahead)[:, 0]
+    index = torch.nonzero(depth > 1e-3)[:, 0]
+    local, depth = local.index_select(0, index), depth.index_select(0, index)
+    covariances = covariances.index_select(0, index)
     fx, fy = camera.fx, camera.fy
     u = camera.cx + fx * local[:, 0] / depth
     v = camera.cy - fy * local[:, 1] / depth
@@ -496,7 +496,8 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     determinant = a * c - b * b
     conic = torch.stack([c, -b, a], 1) / determinant[:, None]  # the inverse, per splat
     # the box around the ellipse outside which a splat's alpha is below 1/255
-    level = torch.sqrt(2 * torch.log((255 * opacities[index].detach()).clamp(min=1)))
+    opacities = opacities.index_select(0, index)
+    level = torch.sqrt(2 * torch.log((255 * opacities.detach()).clamp(min=1)))
     rx = (level * torch.sqrt(a.detach())).clamp(max=reach)
     ry = (level * torch.sqrt(c.detach())).clamp(max=reach)
     x0 = (u.detach() - rx).floor().clamp(0, camera.width)
@@ -508,30 +509,34 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
         return None
     drawn = torch.nonzero(shown)[:, 0]
     drawn = drawn[torch.argsort(depth.detach()[drawn])]  # front to back: pairs come so
+    # each splat's projection (u, v, conic, opacity), gathered with gradients only for the
+    # pairs that show
+    table = torch.cat([u[:, None], v[:, None], conic, opacities[:, None]], 1)
     # the rows of each splat's box, and in each row the pixels inside its ellipse
-    row_splat, py = _spans(drawn, y0[drawn].long(), y1[drawn].long())
-    dy = py + 0.5 - v.detach()[row_splat]
-    ca, cb, cc = conic.detach()[row_splat].T
-    room = (cb * dy) ** 2 - ca * (cc * dy * dy - level[row_splat] ** 2)
+    row_splat, py = _spans(drawn, y0.index_select(0, drawn).long(),
+                           y1.index_select(0, drawn).long())
+    row_u, row_v, ca, cb, cc, _ = table.detach().index_select(0, row_splat).T
+    row_x0, row_x1, row_level = torch.stack([x0, x1, level], 1).index_select(0, row_splat).T
+    dy = py + 0.5 - row_v
+    room = (cb * dy) ** 2 - ca * (cc * dy * dy - row_level ** 2)
     half = torch.sqrt(room.clamp(min=0)) / ca
-    middle = u.detach()[row_splat] - 0.5 - cb * dy / ca  # pixel x + 0.5 - u = dx
-    first = torch.maximum(torch.ceil(middle - half), x0[row_splat]).long()
-    last = torch.minimum(torch.floor(middle + half), x1[row_splat] - 1).long()
+    middle = row_u - 0.5 - cb * dy / ca  # pixel x + 0.5 - u = dx
+    first = torch.maximum(torch.ceil(middle - half), row_x0).long()
+    last = torch.minimum(torch.floor(middle + half), row_x1 - 1).long()
     row, px = _spans(torch.arange(len(py), device=py.device), first,
                      torch.where(room >= 0, torch.maximum(last + 1, first), first))
-    ids, py = row_splat[row], py[row]
-    # each splat's projection (u, v, conic, opacity): gathered with gradients only for the
-    # pairs that show, sorted by pixel, then front to back
-    table = torch.cat([u[:, None], v[:, None], conic, opacities[index][:, None]], 1)
-    with torch.no_grad():
+    ids, py = row_splat.index_select(0, row), py.index_select(0, row)
+    with torch.no_grad():  # the pairs that show, sorted by pixel, then front to back
         alpha = _alpha(table.index_select(0, ids), px, py)
         visible = torch.nonzero(alpha >= 1 / 255)[:, 0]
-        pixel = py[visible] * camera.width + px[visible]
-        order = torch.sort(pixel, stable=True).indices  # by pixel, still front to back
-        shown = visible[order[_transmittance(pixel[order], alpha[visible][order])
-                              >= MIN_TRANSMITTANCE]]
-    ids, px, py = ids[shown], px[shown], py[shown]
-    return py * camera.width + px, index[ids], _alpha(table.index_select(0, ids), px, py)
+        pixel = py.index_select(0, visible) * camera.width + px.index_select(0, visible)
+        pixel, order = torch.sort(pixel, stable=True)  # by pixel, still front to back
+        visible = visible.index_select(0, order)
+        kept = _transmittance(pixel, alpha.index_select(0, visible)) >= MIN_TRANSMITTANCE
+        shown = visible[kept]
+    ids, px, py = ids.index_select(0, shown), px.index_select(0, shown), py.index_select(0, shown)
+    return (py * camera.width + px, index.index_select(0, ids),
+            _alpha(table.index_select(0, ids), px, py))
 
 
 def _spans(owners: torch.Tensor, start: torch.Tensor,
@@ -541,8 +546,8 @@ def _spans(owners: torch.Tensor, start: torch.Tensor,
     count = stop - start
     which = torch.repeat_interleave(torch.arange(len(owners), device=owners.device), count)
     offset = torch.arange(len(which), device=owners.device) - (torch.cumsum(count, 0)
-                                                              - count)[which]
-    return owners[which], start[which] + offset
+                                                              - count).index_select(0, which)
+    return owners.index_select(0, which), start.index_select(0, which) + offset
 
 
 def _alpha(pairs: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
