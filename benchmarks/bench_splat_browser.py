@@ -7,7 +7,9 @@ shown twice: by a bare ``viser`` server holding only them, and by ``palette-stud
 mode (its panel, its pickers) holding the same splats. While the server turns every tab's
 camera around the scene (20 updates a second, as a drag would), the page counts its
 animation frames for ``--seconds`` (and at least 8 frames); the studio's rate over the
-bare rate is the ratio the issue bounds (>= 0.8). Then the run's own bake (``nerf-stage
+bare rate is the ratio the issue bounds (>= 0.8). Each rate comes with where a frame went
+(``frame_rate``): the page's drawing and sort, and the CPU time of Chromium's GPU process,
+whose software rasteriser is the limit here. Then the run's own bake (``nerf-stage
 bake``'s defaults, kept in the run folder) is opened, its frame rate measured the same way,
 and a colour is typed ``-n``
 times: the server's part (the colours of every splat computed and handed to viser, which
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -41,12 +44,34 @@ from studio.scene import SceneTarget  # noqa: E402
 from studio.scene_view import look_from_home  # noqa: E402
 from tests import browser  # noqa: E402
 
-#: Animation frames the page draws, counted from the next call of ``__frames.start()``.
-_COUNT_FRAMES = """
-const counter = {n: 0, since: performance.now()};
-counter.start = () => { counter.n = 0; counter.since = performance.now(); };
+#: Installed before the page's own scripts: counts animation frames from the next call of
+#: ``__frames.start()`` and times where a frame goes on the page's side: the main thread's
+#: time in animation-frame callbacks (three.js drawing the scene: its WebGL calls, which
+#: wait when the GPU process is behind) and the round trips of messages to its workers
+#: (viser sorts the splats by depth in one).
+_PROBE = """
+const counter = {};
+counter.start = () => Object.assign(counter, {n: 0, since: performance.now(), callbacks: 0,
+                                              trips: 0, tripMs: 0});
 counter.rate = () => 1000 * counter.n / (performance.now() - counter.since);
-(function tick() { counter.n++; requestAnimationFrame(tick); })();
+counter.start();
+const request = window.requestAnimationFrame.bind(window);
+window.requestAnimationFrame = callback => request(time => {
+  const start = performance.now();
+  try { callback(time); } finally { counter.callbacks += performance.now() - start; }
+});
+const Base = window.Worker;
+window.Worker = class extends Base {
+  constructor(...args) {
+    super(...args);
+    this.addEventListener('message', () => {
+      if (this.sent) { counter.trips++; counter.tripMs += performance.now() - this.sent; }
+      this.sent = 0;
+    });
+  }
+  postMessage(...args) { this.sent = this.sent || performance.now(); super.postMessage(...args); }
+};
+(function tick() { counter.n++; request(tick); })();
 window.__frames = counter;
 """
 TURNS_PER_SECOND = 20
@@ -67,12 +92,15 @@ def random_splats(target: SceneTarget, count: int, rng: np.random.Generator) -> 
                   run.order, np.ones(3), {})
 
 
-def frame_rate(driver, server, centre: np.ndarray, seconds: float, frames: int = 8) -> float:
+def frame_rate(driver, server, centre: np.ndarray, seconds: float, frames: int = 8) -> dict:
     """Frames a second the page drew while the server turned its cameras around ``centre``,
-    over at least ``seconds`` and ``frames`` frames (at most a minute)."""
-    driver.execute_script(_COUNT_FRAMES)
+    over at least ``seconds`` and ``frames`` frames (at most a minute), and where a frame
+    went, in ms a frame: ``callbacks``, the main thread drawing, and ``sort``, a worker
+    message's round trip (``_PROBE``); the CPU time of Chromium's GPU process (SwiftShader
+    rasterising) and of its renderers (the page's threads, the sort among them)."""
     clients = browser.wait_for(lambda: list(server.get_clients().values()) or None)
     time.sleep(1.0)  # the first frames, the splats' upload and sort
+    cpu = {kind: _cpu_seconds(kind) for kind in ("gpu-process", "renderer")}
     driver.execute_script("window.__frames.start()")
     start = checked = time.perf_counter()
     while (elapsed := time.perf_counter() - start) < 60:
@@ -89,10 +117,28 @@ def frame_rate(driver, server, centre: np.ndarray, seconds: float, frames: int =
             checked = time.perf_counter()
             if driver.execute_script("return window.__frames.n") >= frames:
                 break
-    return driver.execute_script("return window.__frames.rate()")
+    fps, n, callbacks, trips, trip_ms = driver.execute_script(
+        "const c = window.__frames; return [c.rate(), c.n, c.callbacks, c.trips, c.tripMs]")
+    cpu = {kind: 1000 * (_cpu_seconds(kind) - spent) / max(n, 1) for kind, spent in cpu.items()}
+    return {"fps": fps, "frame_ms": 1000 / fps, "callbacks_ms": callbacks / max(n, 1),
+            "sort_ms": trip_ms / max(trips, 1), "sorts": trips,
+            "gpu_process_cpu_ms": cpu["gpu-process"], "renderer_cpu_ms": cpu["renderer"]}
 
 
-def bare_rate(driver, splats: Splats, target: SceneTarget, seconds: float) -> float:
+def _cpu_seconds(kind: str) -> float:
+    """CPU seconds (user and system) spent so far by Chromium's processes of ``--type=kind``
+    (Linux's /proc)."""
+    total = 0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            if f"--type={kind}".encode() in (stat.parent / "cmdline").read_bytes().replace(
+                    b"\0", b" ").split():  # Chromium rewrites its argv, spaces between
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+                total += int(fields[11]) + int(fields[12])  # utime, stime
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def bare_rate(driver, splats: Splats, target: SceneTarget, seconds: float) -> dict:
     """The frame rate of a bare viser server that shows ``splats`` and nothing else, from
     the studio's first camera for ``target``."""
     import viser
@@ -109,7 +155,7 @@ def bare_rate(driver, splats: Splats, target: SceneTarget, seconds: float) -> fl
         server.stop()
 
 
-def studio_rate(driver, target: SceneTarget, seconds: float) -> float:
+def studio_rate(driver, target: SceneTarget, seconds: float) -> dict:
     """The frame rate of palette-studio's scene mode drawing ``target``'s splats."""
     studio = Studio(target, port=0)
     try:
@@ -138,6 +184,7 @@ def main() -> None:
     baked = SceneTarget.open(args.run)  # bakes once, then reads RUN/splats.npz
     rng = np.random.default_rng(0)
     driver = browser.chromium(width, height)
+    driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {"source": _PROBE})
     print(f"headless Chromium, window {width}x{height}, software WebGL")
     results = {"counts": {}}
     try:
@@ -146,9 +193,8 @@ def main() -> None:
             ours_target = SceneTarget(baked.run, baked.path, splats, baked.home)
             bare = bare_rate(driver, splats, ours_target, args.seconds)
             ours = studio_rate(driver, ours_target, args.seconds)
-            results["counts"][count] = {"bare_fps": bare, "studio_fps": ours}
-            print(f"{count:>7} random splats: bare viser {bare:5.1f} fps, studio {ours:5.1f} fps,"
-                  f" ratio {ours / bare:.2f} (target >= 0.8)", flush=True)
+            results["counts"][count] = {"bare": bare, "studio": ours}
+            print(f"{count:>7} random splats: {compared(bare, ours)}", flush=True)
         results.update(bake(driver, baked, args))
     finally:
         driver.quit()
@@ -157,14 +203,23 @@ def main() -> None:
           "drawn by the network, then by the splats, from the home camera")
 
 
+def compared(bare: dict, ours: dict) -> str:
+    """Both pages' frame rates, their ratio (the issue's target) and a frame's breakdown."""
+    def frame(m):
+        return (f"{m['fps']:4.1f} fps ({m['frame_ms']:5.0f} ms a frame: drawing "
+                f"{m['callbacks_ms']:4.0f}, sort round trip {m['sort_ms']:4.0f}; CPU: GPU "
+                f"process {m['gpu_process_cpu_ms']:4.0f}, page {m['renderer_cpu_ms']:4.0f})")
+    return (f"bare viser {frame(bare)}, studio {frame(ours)}, ratio "
+            f"{ours['fps'] / bare['fps']:.2f} (target >= 0.8)")
+
+
 def bake(driver, target: SceneTarget, args) -> dict:
     """The run's own bake in the studio: its frame rate, palette edits timed, and the page
     drawn by the network (before splats) and by the splats from the home camera."""
     splats = target.splats
     bare = bare_rate(driver, splats, target, args.seconds)
     ours = studio_rate(driver, target, args.seconds)
-    print(f"the run's bake, {len(splats)} splats: bare viser {bare:5.1f} fps, studio "
-          f"{ours:5.1f} fps, ratio {ours / bare:.2f}")
+    print(f"the run's bake, {len(splats)} splats: {compared(bare, ours)}")
     network = SceneTarget(target.run, target.path, None, target.home)
     before = screenshot(driver, network, lambda studio: next(
         iter(studio.view.viewports.values())).drawn[0] == target.run.intrinsics.height)
@@ -183,7 +238,7 @@ def bake(driver, target: SceneTarget, args) -> dict:
     finally:
         studio.stop()
     Image.fromarray(np.concatenate([before, after], 1)).save(args.out / "studio_splats.png")
-    return {"bake": {"splats": len(splats), "bare_fps": bare, "studio_fps": ours,
+    return {"bake": {"splats": len(splats), "bare": bare, "studio": ours,
                      "edit_ms": page, "server_ms": server}}
 
 

@@ -12,8 +12,9 @@ dependence, which a splat's one set of weights cannot hold) and of the bake agai
 truth, and of the bake against the network, on and off the rig; then, at ``--scale`` times
 the training resolution (a browser draws the splats finer still), the PSNR of the network
 and of the bake against the truth path traced at that resolution. Figure
-``OUT/splats.png``: per scene, truth, network and bake of the first test view, then of
-the first off-ring view (at ``--scale``).
+``OUT/splats.png``: per scene, truth, network and bake of the first test view and the
+error maps of network and bake (4 |render - truth|), then the same of the first off-ring
+view (at ``--scale``).
 
     python benchmarks/bench_splats.py [--out benchmarks/out/simulated] [--scenes ...]
         [--off-ring 6] [--refine-steps N] [--max-splats N] [--scale 4]
@@ -124,7 +125,8 @@ def main() -> None:
                 baked = _recoloured(run, *render_splats(splats, where, big), background)
                 scores[label]["scaled"] = {"network": mean_psnr(network, real),
                                            "bake": mean_psnr(baked, real)}
-            picture += [real[0], network[0], baked[0]]
+            picture += [real[0], network[0], baked[0],  # then the error maps, 4 |x - truth|
+                        *(np.clip(4 * np.abs(x[0] - real[0]), 0, 1) for x in (network, baked))]
         results[scene] = scores
         rows.append([scene, len(splats), megabytes, seconds,
                      *[scores[v][k] for v in views for k in ("network", "network_diffuse",
