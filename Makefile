@@ -13,7 +13,7 @@ $(BIN)/.installed: setup.cfg pyproject.toml
 	touch $@
 
 NERF := $(DEMO_OUT)/nerf
-# About 18 minutes on 2 CPU cores: photos, then a simulated scene through a weight NeRF.
+# About 13 minutes on 2 CPU cores: photos, then a simulated scene through a weight NeRF.
 demo: $(BIN)/.installed
 	$(BIN)/palette-decompose examples/photos -k 6 -o $(DEMO_OUT)/weights.npz --layers $(DEMO_OUT)/layers --force
 	$(BIN)/python examples/edit_palette.py $(DEMO_OUT)/weights.palette.json -o $(DEMO_OUT)/edited_palette.json --force

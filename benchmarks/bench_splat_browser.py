@@ -3,20 +3,21 @@ viser's bare splat view of the same splats, in one run, and a palette edit of a 
 
 Headless Chromium at 1280x800 draws with software WebGL (SwiftShader), the limit on a
 machine without a GPU. For each count, random splats inside the run's occupied bounds are
-shown twice: by a bare ``viser`` server holding only them, and by ``palette-studio``'s scene
-mode (its panel, its pickers) holding the same splats. While the server turns every tab's
-camera around the scene (20 updates a second, as a drag would), the page counts its
-animation frames for ``--seconds`` (and at least 8 frames); the studio's rate over the
-bare rate is the ratio the issue bounds (>= 0.8). Each rate comes with where a frame went
-(``frame_rate``): the page's drawing and sort, and the CPU time of Chromium's GPU process,
-whose software rasteriser is the limit here. Then the run's own bake (``nerf-stage
-bake``'s defaults, kept in the run folder) is opened, its frame rate measured the same way,
-and a colour is typed ``-n``
-times: the server's part (the colours of every splat computed and handed to viser, which
-sends them) and the time from Enter to the first frame whose centre changed.
+shown by a bare ``viser`` server holding only them and by ``palette-studio``'s scene mode
+(its panel, its pickers) holding the same splats, in turn, ``--repeats`` times. While the
+server turns every tab's camera around the scene (20 updates a second, as a drag would),
+the page counts its animation frames for ``--seconds`` (and at least 8 frames); the
+studio's median rate over the bare viewer's is the ratio the issue bounds (>= 0.8). Each
+rate comes with where a frame went (``frame_rate``): the page's drawing and sort, and the
+CPU time of Chromium's GPU process, whose software rasteriser is the limit here. Then the
+run's own bake (``nerf-stage bake``'s defaults, kept in the run folder) is opened, its
+frame rate measured the same way, and a colour is typed ``-n`` times: the server's part
+(the colours of every splat computed and handed to viser, which sends them) and the time
+from Enter to the first frame whose centre changed.
 
     python benchmarks/bench_splat_browser.py [--run demo_out/nerf/run] [--out benchmarks/out]
-        [--counts 10000 30000 50000 100000] [--seconds 4] [-n 10] [--window 1280x800]
+        [--counts 10000 30000 50000 100000] [--seconds 4] [--repeats 3] [-n 10]
+        [--window 1280x800]
 """
 
 from __future__ import annotations
@@ -172,6 +173,8 @@ def main() -> None:
     parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 30_000, 50_000,
                                                                   100_000])
     parser.add_argument("--seconds", type=float, default=4.0, help="frames counted this long")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="bare viewer and studio measured in turn this many times (medians)")
     parser.add_argument("-n", type=int, default=10, help="palette edits timed")
     parser.add_argument("--window", default="1280x800", help="browser window, WIDTHxHEIGHT")
     args = parser.parse_args()
@@ -191,8 +194,7 @@ def main() -> None:
         for count in args.counts:
             splats = random_splats(baked, count, rng)
             ours_target = SceneTarget(baked.run, baked.path, splats, baked.home)
-            bare = bare_rate(driver, splats, ours_target, args.seconds)
-            ours = studio_rate(driver, ours_target, args.seconds)
+            bare, ours = both_rates(driver, splats, ours_target, args)
             results["counts"][count] = {"bare": bare, "studio": ours}
             print(f"{count:>7} random splats: {compared(bare, ours)}", flush=True)
         results.update(bake(driver, baked, args))
@@ -203,10 +205,21 @@ def main() -> None:
           "drawn by the network, then by the splats, from the home camera")
 
 
+def both_rates(driver, splats: Splats, target: SceneTarget, args) -> tuple[dict, dict]:
+    """The bare viewer's and the studio's ``frame_rate`` measurements, taken in turn
+    ``--repeats`` times: each the median of its runs, key by key, with the runs' rates."""
+    runs = [(bare_rate(driver, splats, target, args.seconds),
+             studio_rate(driver, target, args.seconds)) for _ in range(args.repeats)]
+    return tuple({**{key: float(np.median([m[key] for m in page])) for key in page[0]},
+                  "fps_runs": [m["fps"] for m in page]} for page in zip(*runs))
+
+
 def compared(bare: dict, ours: dict) -> str:
-    """Both pages' frame rates, their ratio (the issue's target) and a frame's breakdown."""
+    """Both pages' frame rates, their ratio (the issue's target) and a frame's breakdown
+    (medians of the repeats)."""
     def frame(m):
-        return (f"{m['fps']:4.1f} fps ({m['frame_ms']:5.0f} ms a frame: drawing "
+        return (f"{m['fps']:4.1f} fps (of {min(m['fps_runs']):.1f}-{max(m['fps_runs']):.1f}; "
+                f"{m['frame_ms']:5.0f} ms a frame: drawing "
                 f"{m['callbacks_ms']:4.0f}, sort round trip {m['sort_ms']:4.0f}; CPU: GPU "
                 f"process {m['gpu_process_cpu_ms']:4.0f}, page {m['renderer_cpu_ms']:4.0f})")
     return (f"bare viser {frame(bare)}, studio {frame(ours)}, ratio "
@@ -217,8 +230,7 @@ def bake(driver, target: SceneTarget, args) -> dict:
     """The run's own bake in the studio: its frame rate, palette edits timed, and the page
     drawn by the network (before splats) and by the splats from the home camera."""
     splats = target.splats
-    bare = bare_rate(driver, splats, target, args.seconds)
-    ours = studio_rate(driver, target, args.seconds)
+    bare, ours = both_rates(driver, splats, target, args)
     print(f"the run's bake, {len(splats)} splats: {compared(bare, ours)}")
     network = SceneTarget(target.run, target.path, None, target.home)
     before = screenshot(driver, network, lambda studio: next(
