@@ -533,10 +533,9 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
         pixel, order = torch.sort(pixel, stable=True)  # by pixel, still front to back
         visible = visible.index_select(0, order)
         kept = _transmittance(pixel, alpha.index_select(0, visible)) >= MIN_TRANSMITTANCE
-        shown = visible[kept]
+        shown, pixel = visible[kept], pixel[kept]
     ids, px, py = ids.index_select(0, shown), px.index_select(0, shown), py.index_select(0, shown)
-    return (py * camera.width + px, index.index_select(0, ids),
-            _alpha(table.index_select(0, ids), px, py))
+    return pixel, index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py)
 
 
 def _spans(owners: torch.Tensor, start: torch.Tensor,
