@@ -18,6 +18,15 @@ FACE_TOL = 1e-10
 #: A colour whose signed distance to every face plane is below this is inside.
 INSIDE_TOL = 1e-12
 
+#: The edge-collapse LPs of hull simplification (``geometry_kernels.collapse_points``):
+#: a point counts as outside a facet plane when n . v + offset >= -LP_FEASIBILITY_TOL;
+#: a basis as optimal when its dual weights are >= -LP_OPTIMALITY_TOL (HiGHS's two
+#: tolerances, named as in HiGHS); and as singular when a pivot is below LP_PIVOT_TOL
+#: (its rows are unit normals).
+LP_FEASIBILITY_TOL = 1e-9
+LP_OPTIMALITY_TOL = 1e-12
+LP_PIVOT_TOL = 1e-12
+
 #: Relative size of a singular value under which a colour set is taken to have
 #: lost a dimension (collinear greys, coplanar colours).
 RANK_TOL = 1e-9

@@ -16,7 +16,15 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .constants import EDGE_TOL, FACE_TOL, INSIDE_TOL, VERTEX_TOL
+from .constants import (
+    EDGE_TOL,
+    FACE_TOL,
+    INSIDE_TOL,
+    LP_FEASIBILITY_TOL,
+    LP_OPTIMALITY_TOL,
+    LP_PIVOT_TOL,
+    VERTEX_TOL,
+)
 
 
 @njit(cache=True, inline="always")
@@ -77,9 +85,14 @@ def project_to_polyhedron(points, vertices, faces, normals, offsets, out):
         if not outside:
             out[i] = p
             continue
+        # The closest point lies on a face whose plane has p in front: one of the
+        # faces around it has n . (p - q) > 0, or |p - q|^2 = sum lambda_f n_f . (p - q)
+        # would not be positive.
         best = np.inf
         q = np.empty(3)
         for f in range(faces.shape[0]):
+            if _dot3(normals[f], p) + offsets[f] <= 0.0:
+                continue
             _closest_on_triangle(p, vertices[faces[f, 0]], vertices[faces[f, 1]],
                                  vertices[faces[f, 2]], q)
             dist = _dot3(p - q, p - q)
@@ -143,8 +156,15 @@ def _mvc_polyhedron_point(x, vertices, faces, normals, offsets, d, u, w):
             w[j] = 1.0
             return
         u[j, 0], u[j, 1], u[j, 2] = dx / d[j], dy / d[j], dz / d[j]
-    # On an edge: linear weights of its two ends.
+    # A point on an edge or a face lies on a face plane: far from all of them (most
+    # points), skip both tests.
+    on_a_plane = False
     for f in range(faces.shape[0]):
+        if abs(_dot3(normals[f], x) + offsets[f]) < 2.0 * max(EDGE_TOL, FACE_TOL):
+            on_a_plane = True
+            break
+    # On an edge: linear weights of its two ends.
+    for f in range(faces.shape[0] if on_a_plane else 0):
         for e in range(3):
             a, b = faces[f, e], faces[f, (e + 1) % 3]
             ex, ey, ez = vertices[b, 0] - vertices[a, 0], vertices[b, 1] - vertices[a, 1], \
@@ -161,7 +181,7 @@ def _mvc_polyhedron_point(x, vertices, faces, normals, offsets, d, u, w):
     # triangle holds the point most surely (largest smallest coordinate).
     best_face, best_min = -1, -1e-6
     b0 = b1 = 0.0
-    for f in range(faces.shape[0]):
+    for f in range(faces.shape[0] if on_a_plane else 0):
         if abs(_dot3(normals[f], x) + offsets[f]) >= FACE_TOL:
             continue
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -277,3 +297,124 @@ def mvc_polygon(points, polygon, out):
             total += w[j]
         for j in range(k):
             w[j] /= total
+
+
+@njit(cache=True)
+def _solve_square(m, r, x):
+    """x = m^-1 r for a small (n, n) m, by Gaussian elimination with partial pivoting
+    (m and r are overwritten); False when m is singular."""
+    n = m.shape[0]
+    for col in range(n):
+        p = col
+        for i in range(col + 1, n):
+            if abs(m[i, col]) > abs(m[p, col]):
+                p = i
+        if abs(m[p, col]) < LP_PIVOT_TOL:
+            return False
+        for j in range(n):
+            m[col, j], m[p, j] = m[p, j], m[col, j]
+        r[col], r[p] = r[p], r[col]
+        for i in range(col + 1, n):
+            f = m[i, col] / m[col, col]
+            for j in range(col, n):
+                m[i, j] -= f * m[col, j]
+            r[i] -= f * r[col]
+    for i in range(n - 1, -1, -1):
+        s = r[i]
+        for j in range(i + 1, n):
+            s -= m[i, j] * x[j]
+        x[i] = s / m[i, i]
+    return True
+
+
+@njit(cache=True)
+def _lp_vertex(a, b, c, x):
+    """Minimise c . x subject to a x >= b, a (m, n), by enumerating bases.
+
+    Runs through the n-row subsets S of a in lexicographic order and stops at the
+    first optimal one: dual feasible (c = a_S^T y with y >= 0) and primal feasible
+    (its vertex a_S^-1 b_S satisfies every row); by complementary slackness that
+    vertex is a minimiser. Writes it into x (n,); False when no basis is both (the
+    set is empty, or has no vertex where c is least).
+    """
+    m, n = a.shape
+    if m < n:
+        return False
+    basis = np.arange(n)
+    square = np.empty((n, n))
+    rhs = np.empty(n)
+    y = np.empty(n)
+    while True:
+        for i in range(n):
+            for j in range(n):
+                square[j, i] = a[basis[i], j]
+            rhs[i] = c[i]
+        if _solve_square(square, rhs, y) and y.min() >= -LP_OPTIMALITY_TOL:
+            for i in range(n):
+                square[i] = a[basis[i]]
+                rhs[i] = b[basis[i]]
+            if _solve_square(square, rhs, x):
+                feasible = True
+                for row in range(m):
+                    value = -b[row]
+                    for j in range(n):
+                        value += a[row, j] * x[j]
+                    if value < -LP_FEASIBILITY_TOL:
+                        feasible = False
+                        break
+                if feasible:
+                    return True
+        i = n - 1
+        while i >= 0 and basis[i] == m - n + i:
+            i -= 1
+        if i < 0:
+            return False
+        basis[i] += 1
+        for j in range(i + 1, n):
+            basis[j] = basis[j - 1] + 1
+
+
+@njit(cache=True)
+def collapse_points(normals, offsets, measures, rows, starts, box, slack_penalty, out):
+    """The edge-collapse LPs of hull simplification, one block of facets each.
+
+    Block i, the facets rows[starts[i]:starts[i + 1]] around an edge, asks for the
+    point v in the box (d, 2) outside all its planes (n_f . v + offset_f >= 0) that
+    adds the least volume sum_f measure_f (n_f . v + offset_f) / d; normals (F, d)
+    unit outward, offsets and measures (F,). When no such point exists, the planes
+    move out by a slack s >= 0 that costs slack_penalty per unit; with
+    slack_penalty <= 0 that LP is left unsolved. out (B, d + 1): v and s (s = NaN,
+    v = NaN: infeasible, unsolved).
+
+    Each LP is tried on the facets alone (fast: few rows), then with the box's
+    planes (when the least volume lies beyond it), then with the slack.
+    """
+    d = normals.shape[1]
+    for block in range(starts.shape[0] - 1):
+        facets = rows[starts[block]:starts[block + 1]]
+        m = facets.shape[0]
+        # Rows of a x >= b in the variables (v, s): facets, the box's low and high sides, s >= 0.
+        a = np.zeros((m + 2 * d + 1, d + 1))
+        b = np.zeros(m + 2 * d + 1)
+        c = np.zeros(d + 1)
+        for i in range(m):
+            f = facets[i]
+            a[i, :d] = normals[f]
+            a[i, d] = 1.0
+            b[i] = -offsets[f]
+            c[:d] += measures[f] / d * normals[f]
+        for j in range(d):
+            a[m + 2 * j, j], b[m + 2 * j] = 1.0, box[j, 0]
+            a[m + 2 * j + 1, j], b[m + 2 * j + 1] = -1.0, -box[j, 1]
+        a[m + 2 * d, d] = 1.0
+        c[d] = slack_penalty
+        x = np.zeros(d + 1)
+        planes = np.ascontiguousarray(a[:m + 2 * d, :d])
+        inside = _lp_vertex(planes[:m], b[:m], c[:d], x[:d])
+        for j in range(d):
+            inside = inside and box[j, 0] <= x[j] <= box[j, 1]
+        if inside or _lp_vertex(planes, b[:m + 2 * d], c[:d], x[:d]):
+            x[d] = 0.0
+        elif slack_penalty <= 0 or not _lp_vertex(a, b, c, x):
+            x[:] = np.nan
+        out[block] = x

@@ -9,11 +9,13 @@ still encloses all colours. With unit outward facet normals n_f, offsets o_f
     minimise   sum_f A_f (n_f . v + o_f) / d     over the facets f touching a or b
     subject to n_f . v + o_f >= 0                for the same facets,
 
-solved with scipy's HiGHS, all new edges of one step in one block-diagonal LP.
-The cheapest edge collapses, the hull is recomputed, and so on. An edge's LP
-depends only on the facets around its two ends, so its answer is cached under a
-hash of those facets and only edges near the last collapse are solved again.
-The same code simplifies planar colour sets (d = 2: polygons, facets are edges).
+solved exactly in ``geometry_kernels.collapse_points`` by enumerating the bases of
+these few rows (an edge has a dozen facets around it: microseconds an LP, where a
+general solver's call costs more than all of them). The cheapest edge collapses, the
+hull is recomputed, and so on. An edge's LP depends only on the facets around its two
+ends, so its answer is cached under a hash of those facets and only edges near the
+last collapse are solved again. The same code simplifies planar colour sets (d = 2:
+polygons, facets are edges).
 
 References
 ----------
@@ -25,10 +27,9 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.optimize import linprog
 from scipy.spatial import ConvexHull
 
+from . import geometry_kernels
 from .errors import InputError
 from .polytope import Polytope, polytope_from_points, polytope_rmse
 
@@ -92,11 +93,14 @@ def simplification_levels(points: np.ndarray, target: int | None = None) -> Iter
         keys = _edge_keys(edges, facets, n_ids)
         touching = _facets_touching(facets, n_ids)
         todo = [i for i, key in enumerate(keys) if key not in cache]
-        if todo:
+        for penalty in (0.0, _SLACK_PENALTY):  # how far collapses let colours out, if all do
             blocks = [sorted(set(touching[a] + touching[b])) for a, b in edges[todo].tolist()]
-            solved = _solve_collapses(blocks, normals, offsets, measures, box, d)
-            cache.update({keys[i]: result for i, result in zip(todo, solved)})
-        slack, volume = np.array([cache[key][:2] for key in keys]).T
+            cache.update(zip([keys[i] for i in todo],
+                             _solve_collapses(blocks, normals, offsets, measures, box, penalty)))
+            slack, volume = np.array([cache[key][:2] for key in keys]).T
+            if (slack <= _SLACK_TOL).any():
+                break
+            todo = np.flatnonzero(np.isnan(slack)).tolist()
         chosen = _independent_cheapest(edges, slack, volume, facets, touching,
                                        max(1, (len(alive) - target) // _BATCH_DIVISOR))
         new_ids = np.arange(n_ids, n_ids + len(chosen))
@@ -169,36 +173,25 @@ def _facets_touching(facets: np.ndarray, n_ids: int) -> list[list[int]]:
     return touching
 
 
-def _solve_collapses(blocks, normals, offsets, measures, box, d):
-    """Solve the collapse LP of each block of facets in one HiGHS call.
-
-    Each block gets a slack s >= 0 that moves all its planes outwards
-    (n_f . v + o_f + s >= 0) at a cost of ``_SLACK_PENALTY`` per unit, so every
-    block is feasible and one infeasible edge cannot fail the others; a block
-    whose optimum needs s > 0 has no point outside all its planes: collapsing
-    that edge lets colours out by up to s. Returns [(s, added volume, v)].
-    """
-    n = len(blocks)
-    rows = np.concatenate(blocks).astype(np.int64)
-    block_of_row = np.repeat(np.arange(n), [len(b) for b in blocks])
-    objective = np.zeros((n, d + 1))
-    np.add.at(objective[:, :d], block_of_row, measures[rows, None] * normals[rows] / d)
-    objective[:, d] = _SLACK_PENALTY
-    constant = np.bincount(block_of_row, measures[rows] * offsets[rows] / d, minlength=n)
-    coefficients = np.concatenate([-normals[rows], -np.ones((len(rows), 1))], axis=1)
-    columns = block_of_row[:, None] * (d + 1) + np.arange(d + 1)
-    a_ub = sp.csr_matrix(
-        (coefficients.ravel(), (np.repeat(np.arange(len(rows)), d + 1), columns.ravel())),
-        shape=(len(rows), n * (d + 1)),
-    )
-    bounds = np.tile(np.vstack([box, [0.0, np.inf]]), (n, 1))
-    res = linprog(objective.ravel(), A_ub=a_ub, b_ub=offsets[rows], bounds=bounds,
-                  method="highs-ds", options={"presolve": False})  # presolve costs more here
-    if res.status != 0:
-        raise RuntimeError(f"HiGHS failed on the edge-collapse LP: {res.message}")
-    solution = res.x.reshape(n, d + 1)
+def _solve_collapses(blocks, normals, offsets, measures, box, penalty) -> list[tuple]:
+    """The collapse LP of each block of facets (``geometry_kernels.collapse_points``):
+    [(slack, added volume, point)], slack and volume NaN where the edge cannot collapse
+    with all colours kept inside and ``penalty`` is 0 (least slack not asked for)."""
+    if not blocks:
+        return []
+    d = normals.shape[1]
+    starts = np.cumsum([0] + [len(block) for block in blocks])
+    solution = np.empty((len(blocks), d + 1))
+    geometry_kernels.collapse_points(np.ascontiguousarray(normals), np.ascontiguousarray(offsets),
+                                     measures, np.concatenate(blocks), starts, box, penalty,
+                                     solution)
     v, slack = solution[:, :d], solution[:, d]
-    volume = np.einsum("ij,ij->i", objective[:, :d], v) + constant
+    rows = np.concatenate(blocks)
+    block_of_row = np.repeat(np.arange(len(blocks)), np.diff(starts))
+    gradient = np.zeros((len(blocks), d))
+    np.add.at(gradient, block_of_row, measures[rows, None] * normals[rows] / d)
+    constant = np.bincount(block_of_row, measures[rows] * offsets[rows] / d, minlength=len(blocks))
+    volume = np.einsum("ij,ij->i", gradient, v) + constant
     return list(zip(slack.tolist(), volume.tolist(), v))
 
 

@@ -2,7 +2,8 @@
 
 import numpy as np
 import pytest
-from scipy.spatial import Delaunay
+from scipy.optimize import linprog
+from scipy.spatial import ConvexHull, Delaunay
 
 from palette_core import (
     InputError,
@@ -10,6 +11,13 @@ from palette_core import (
     polytope_rmse,
     rgb_to_mvc_weights,
     simplification_levels,
+)
+from palette_core.hull import (
+    _SLACK_PENALTY,
+    _edges,
+    _facet_measures,
+    _facets_touching,
+    _solve_collapses,
 )
 
 from .helpers import weight_invariants
@@ -38,6 +46,36 @@ def test_box_like_sets_still_reach_a_simplex(rng, d):
     """A cube's (square's) edges cannot collapse with all points kept inside; it still ends."""
     levels = list(simplification_levels(rng.random((300, d))))
     assert len(levels[-1]) == d + 1
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("shape", ["ball", "cube"])
+def test_collapse_lps_agree_with_a_general_solver(rng, d, shape):
+    """Every edge's collapse LP, solved by enumerating bases, has HiGHS's optimum (volume plus
+    penalised slack). A cube's edges cannot collapse without letting points out, a ball's can."""
+    points = rng.normal(size=(300, d))
+    if shape == "cube":
+        corners = np.stack(np.meshgrid(*[[0.0, 1.0]] * d), -1).reshape(-1, d)
+        points = np.r_[corners, rng.random((300, d))]
+    hull = ConvexHull(points)
+    normals, offsets = hull.equations[:, :d], hull.equations[:, d]
+    measures = _facet_measures(points[hull.simplices])
+    touching = _facets_touching(hull.simplices, len(points))
+    blocks = [sorted(set(touching[a] + touching[b])) for a, b in _edges(hull.simplices)]
+    box = np.stack([points.min(0) - 1, points.max(0) + 1], -1)
+    ours = _solve_collapses(blocks, normals, offsets, measures, box, _SLACK_PENALTY)
+    unsolved = _solve_collapses(blocks, normals, offsets, measures, box, 0.0)
+    for block, (slack, volume, v), (lazy_slack, _, _) in zip(blocks, ours, unsolved):
+        a = np.c_[-normals[block], -np.ones(len(block))]
+        c = np.r_[measures[block] @ normals[block] / d, _SLACK_PENALTY]
+        best = linprog(c, A_ub=a, b_ub=offsets[block], bounds=[*box, (0, None)], method="highs")
+        constant = measures[block] @ offsets[block] / d
+        assert volume + _SLACK_PENALTY * slack == pytest.approx(best.fun + constant, rel=1e-6,
+                                                                 abs=1e-9)
+        assert (normals[block] @ v + offsets[block] + slack >= -1e-9).all()
+        assert (slack > 1e-9) == np.isnan(lazy_slack)  # unsolved without a penalty
+    needs_slack = np.mean([slack > 1e-9 for slack, _, _ in ours])
+    assert needs_slack == 1 if shape == "cube" else needs_slack < 0.5
 
 
 @pytest.mark.parametrize("k", [4, 5, 7])

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.optimize import nnls
 from scipy.spatial import Delaunay
 
 from palette_core import InputError, polytope_from_points, rgb_to_mvc_weights
@@ -88,6 +89,19 @@ def test_clipped_channels(rng):
     colours[1000:2000, 1] = 1.0
     colours[2000:, :2] = 0.0
     check(polytope_from_points(colours), colours)
+
+
+def test_projection_is_the_closest_point(rng):
+    """Colours outside go to the polytope's closest point: the least distance over all convex
+    combinations of the vertices (NNLS with a heavily weighted sum-to-one row)."""
+    poly = polytope_from_points(rng.random((20, 3)))
+    colours = rng.random((300, 3)) * 3 - 1
+    projected = poly.from_local(project_to_polytope(colours, poly))
+    rows = np.r_[poly.vertices.T, np.full((1, len(poly.vertices)), 1e4)]
+    for colour, point in zip(colours, projected):
+        weights, _ = nnls(rows, np.r_[colour, 1e4])
+        assert np.linalg.norm(colour - point) == pytest.approx(
+            np.linalg.norm(colour - weights @ poly.vertices), abs=1e-6)
 
 
 def test_lower_dimensional_polytopes(rng):
