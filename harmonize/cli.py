@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
+from typing import NoReturn
 
-from palette_core.cli import ArgumentParser, run_cli
+from palette_core.cli import ArgumentParser, exit_without_teardown, run_cli
 from palette_core.errors import InputError
 from palette_core.palette_file import palette_to_hex
 from palette_core.stack import DEFAULT_STACK, read_stack
@@ -45,6 +45,11 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli(PROG, lambda: _run(build_parser().parse_args(argv)))
 
 
+def run() -> NoReturn:
+    """The console script: ``main``, then the process ends without Python's teardown."""
+    exit_without_teardown(main())
+
+
 def _run(args) -> int:
     if args.stack is None:
         if not Path(DEFAULT_STACK).is_file():
@@ -76,4 +81,4 @@ def _print_fit_table(result: StackHarmonization) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

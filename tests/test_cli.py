@@ -1,6 +1,8 @@
-"""palette-decompose and palette-recolor through main([...])."""
+"""palette-decompose and palette-recolor through main([...]), and as processes."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -40,6 +42,19 @@ def test_decompose_then_recolor(photo_dir, tmp_path, capsys):
     again = np.asarray(Image.open(out / "same" / "a.png"), float)
     assert np.array_equal(expected, again)
     assert (out / "same" / "sub" / "c.png").is_file()
+
+
+def test_console_script_process(photo_dir, tmp_path):
+    """As a process (``run``, which skips Python's teardown): every output in place and the
+    streams flushed on success; one line on stderr and exit code 2 on bad input."""
+    command = [sys.executable, "-m", "palette_core.cli.decompose", str(photo_dir), "-k", "5",
+               "-o", str(tmp_path / "w.npz")]
+    done = subprocess.run(command, capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.rstrip().splitlines()[-1].startswith("wrote ")
+    assert len(read_stack(tmp_path / "w.npz").palette) == 5
+    assert (tmp_path / "w.palette.json").is_file() and (tmp_path / "w.palette.png").is_file()
+    again = subprocess.run(command, capture_output=True, text=True)  # no --force
+    assert again.returncode == 2 and again.stderr.count("\n") == 1
 
 
 def test_float16_stack(photo_dir, tmp_path):

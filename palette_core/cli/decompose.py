@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from typing import NoReturn
 
 from ..cluster import check_workers, dask_client
 from ..collection import decompose_collection
@@ -14,7 +15,7 @@ from ..palettes import PALETTE_METHODS
 from ..sources import is_video
 from ..stack import DEFAULT_STACK, is_zarr
 from ..weights import WEIGHT_METHODS
-from . import ArgumentParser, add_method_options, given_options, run_cli
+from . import ArgumentParser, add_method_options, exit_without_teardown, given_options, run_cli
 
 PROG = "palette-decompose"
 
@@ -67,6 +68,11 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli(PROG, lambda: _run(build_parser().parse_args(argv)))
 
 
+def run() -> NoReturn:
+    """The console script: ``main``, then the process ends without Python's teardown."""
+    exit_without_teardown(main())
+
+
 def _run(args) -> int:
     check_workers(args.workers, args.scheduler)
     if is_zarr(args.output) or any(is_video(path) for path in args.inputs):
@@ -115,4 +121,4 @@ def _run_collection(args) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

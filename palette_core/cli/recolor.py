@@ -3,8 +3,8 @@ or inside a selection."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -14,7 +14,7 @@ from ..palette_file import read_palette_json
 from ..recolor import recolor_stack
 from ..selection import LocalEdit, Selection, parse_near
 from ..stack import read_stack
-from . import ArgumentParser, run_cli
+from . import ArgumentParser, exit_without_teardown, run_cli
 
 PROG = "palette-recolor"
 
@@ -62,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli(PROG, lambda: _run(build_parser().parse_args(argv)))
 
 
+def run() -> NoReturn:
+    """The console script: ``main``, then the process ends without Python's teardown."""
+    exit_without_teardown(main())
+
+
 def _run(args) -> int:
     selected = args.mask or args.select_colour is not None or args.select_near
     if args.palette is None and not (args.edits and not selected):
@@ -93,4 +98,4 @@ def _run(args) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
