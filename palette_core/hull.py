@@ -234,18 +234,27 @@ def extract_palette(
     k = check_palette_size(k, max_error)
     used = counts > 0
     hull = polytope_from_points(colours[used])
-    if hull.dim < 2 or (max_error is None and len(hull.vertices) <= k):
-        return hull
-    levels = simplification_levels(hull.to_local(hull.vertices), k if max_error is None else None)
     if max_error is None:
-        level = next(lv for lv in levels if len(lv) <= k)
-        return _clipped(hull, level)
-    candidates = [lv for lv in levels if k is None or len(lv) <= k]
+        return simplified_hull(hull, k)
+    if hull.dim < 2:
+        return hull
+    candidates = [lv for lv in simplification_levels(hull.to_local(hull.vertices))
+                  if k is None or len(lv) <= k]
     for level in reversed(candidates):  # fewest vertices first
         poly = _clipped(hull, level)
         if polytope_rmse(colours[used], counts[used], poly) <= max_error:
             return poly
     return _clipped(hull, candidates[0])
+
+
+def simplified_hull(hull: Polytope, k: int) -> Polytope:
+    """The hull of the colours simplified to ``k`` vertices and clipped to the RGB cube; the
+    hull itself when it has at most ``k`` vertices or is a point or a segment."""
+    if hull.dim < 2 or len(hull.vertices) <= k:
+        return hull
+    level = next(lv for lv in simplification_levels(hull.to_local(hull.vertices), k)
+                 if len(lv) <= k)
+    return _clipped(hull, level)
 
 
 def check_palette_size(k: int | None, max_error: float | None) -> int | None:

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .hull import check_palette_size, extract_palette
+from .hull import check_palette_size, extract_palette, simplified_hull
 from .mvc import rgb_to_mvc_weights
 from .polytope import Polytope, polytope_from_points, polytope_rmse
 
@@ -92,8 +92,9 @@ def refined_palette(colours: np.ndarray, counts: np.ndarray, k: int | None = 6,
     colours, counts = colours[used], counts[used]
     if max_error is not None:
         return _smallest_within(colours, counts, k, max_error)
-    start = extract_palette(colours, counts, k)
-    if start.dim < 3 or len(polytope_from_points(colours).vertices) <= k:
+    hull = polytope_from_points(colours)
+    start = simplified_hull(hull, k)
+    if start.dim < 3 or len(hull.vertices) <= k:
         return start  # degenerate, or the whole hull: exact
     bins, shares = binned_colours(colours, counts)
     initial = start.vertices
