@@ -141,10 +141,13 @@ def _cross_dot(ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 @njit(cache=True)
-def _mvc_polyhedron_point(x, vertices, faces, normals, offsets, d, u, w):
+def _mvc_polyhedron_point(x, vertices, faces, normals, offsets, ends, face_edges, d, u, cross,
+                          scaled, w):
     """Mean value coordinates of one point x inside a convex polyhedron, into w (K,).
 
-    d (K,) and u (K, 3) are scratch space for distances and unit directions.
+    ends (E, 2) are the polyhedron's edges, face_edges (F, 3) each face's edges (id + 1,
+    negative where the face runs the edge backwards: ``edge_table``); d (K,), u (K, 3),
+    cross and scaled (E, 3) are scratch space.
     """
     k = vertices.shape[0]
     w[:] = 0.0
@@ -214,27 +217,33 @@ def _mvc_polyhedron_point(x, vertices, faces, normals, offsets, d, u, w):
     # vectors to its corners, lambda_i = (n_jk . m) / (n_jk . u_i), and corner i
     # gains lambda_i / d_i (Ju, Schaefer, Warren 2005, Sec. 3.2). The angles come
     # from atan2 and the splits from determinants, which stay accurate close to
-    # a face, unlike the arcsin/sin form of their Fig. 4.
+    # a face, unlike the arcsin/sin form of their Fig. 4. Each edge's terms are
+    # computed once for the two faces that share it (a face running it backwards
+    # negates them, exactly).
+    for e in range(ends.shape[0]):
+        a, b = ends[e, 0], ends[e, 1]
+        cx = cross[e, 0] = u[a, 1] * u[b, 2] - u[a, 2] * u[b, 1]
+        cy = cross[e, 1] = u[a, 2] * u[b, 0] - u[a, 0] * u[b, 2]
+        cz = cross[e, 2] = u[a, 0] * u[b, 1] - u[a, 1] * u[b, 0]
+        sine = math.sqrt(cx * cx + cy * cy + cz * cz)
+        half_angle = 0.5 * math.atan2(sine, u[a, 0] * u[b, 0] + u[a, 1] * u[b, 1]
+                                      + u[a, 2] * u[b, 2]) / sine
+        scaled[e, 0], scaled[e, 1], scaled[e, 2] = half_angle * cx, half_angle * cy, half_angle * cz
     for f in range(faces.shape[0]):
         mx = my = mz = 0.0
         for e in range(3):
-            a, b = faces[f, e], faces[f, (e + 1) % 3]
-            cx = u[a, 1] * u[b, 2] - u[a, 2] * u[b, 1]
-            cy = u[a, 2] * u[b, 0] - u[a, 0] * u[b, 2]
-            cz = u[a, 0] * u[b, 1] - u[a, 1] * u[b, 0]
-            sine = math.sqrt(cx * cx + cy * cy + cz * cz)
-            half_angle = 0.5 * math.atan2(sine, u[a, 0] * u[b, 0] + u[a, 1] * u[b, 1]
-                                          + u[a, 2] * u[b, 2]) / sine
-            mx += half_angle * cx
-            my += half_angle * cy
-            mz += half_angle * cz
+            edge = abs(face_edges[f, e]) - 1
+            if face_edges[f, e] > 0:
+                mx, my, mz = mx + scaled[edge, 0], my + scaled[edge, 1], mz + scaled[edge, 2]
+            else:
+                mx, my, mz = mx - scaled[edge, 0], my - scaled[edge, 1], mz - scaled[edge, 2]
         for e in range(3):
-            a, b = faces[f, e], faces[f, (e + 1) % 3]
+            edge = abs(face_edges[f, e]) - 1
             o = faces[f, (e + 2) % 3]  # the corner off edge e
-            # (u_a x u_b) . m / ((u_a x u_b) . u_o): the normal's length cancels.
-            w[o] += (_cross_dot(u[a, 0], u[a, 1], u[a, 2], u[b, 0], u[b, 1], u[b, 2], mx, my, mz)
-                     / (_cross_dot(u[a, 0], u[a, 1], u[a, 2], u[b, 0], u[b, 1], u[b, 2],
-                                   u[o, 0], u[o, 1], u[o, 2]) * d[o]))
+            # (u_a x u_b) . m / ((u_a x u_b) . u_o): the normal's length and sign cancel.
+            cx, cy, cz = cross[edge, 0], cross[edge, 1], cross[edge, 2]
+            w[o] += ((cx * mx + cy * my + cz * mz)
+                     / ((cx * u[o, 0] + cy * u[o, 1] + cz * u[o, 2]) * d[o]))
     total = w.sum()
     for j in range(k):
         w[j] /= total
@@ -247,11 +256,35 @@ def mvc_polyhedron(points, vertices, faces, normals, offsets, n_chunks, out):
     Points go in n_chunks chunks, each with its own scratch arrays.
     """
     k = vertices.shape[0]
+    ends, face_edges = edge_table(faces, k)
     for c in prange(n_chunks):
         d = np.empty(k)
         u = np.empty((k, 3))
+        cross = np.empty((ends.shape[0], 3))
+        scaled = np.empty((ends.shape[0], 3))
         for i in range(c * points.shape[0] // n_chunks, (c + 1) * points.shape[0] // n_chunks):
-            _mvc_polyhedron_point(points[i], vertices, faces, normals, offsets, d, u, out[i])
+            _mvc_polyhedron_point(points[i], vertices, faces, normals, offsets, ends, face_edges,
+                                  d, u, cross, scaled, out[i])
+
+
+@njit(cache=True)
+def edge_table(faces, k):
+    """The edges of a triangle mesh with k vertices: ends (E, 2), lower id first, and for each
+    face (F, 3) its edges in order as id + 1, negated where the face runs it backwards."""
+    edge_id = np.full((k, k), -1, np.int64)
+    ends = np.empty((3 * faces.shape[0], 2), np.int64)
+    face_edges = np.empty((faces.shape[0], 3), np.int64)
+    n_edges = 0
+    for f in range(faces.shape[0]):
+        for e in range(3):
+            a, b = faces[f, e], faces[f, (e + 1) % 3]
+            low, high = min(a, b), max(a, b)
+            if edge_id[low, high] < 0:
+                edge_id[low, high] = n_edges
+                ends[n_edges, 0], ends[n_edges, 1] = low, high
+                n_edges += 1
+            face_edges[f, e] = (edge_id[low, high] + 1) * (1 if a == low else -1)
+    return ends[:n_edges], face_edges
 
 
 @njit(cache=True, parallel=True)
