@@ -19,7 +19,12 @@ steps, as archetypal analysis does (Cutler and Breiman 1994):
   box-constrained quadratic per channel, solved exactly by an active-set method
   (``_box_qp``); a small pull towards the last palette keeps it well posed.
 
-Both steps lower E. A colour that falls inside the hull of the others is
+Both steps lower E, but slowly (each gains less than the last, linearly). So each
+palette step is extrapolated, as Ang and Gillis (2019) do for NMF: it goes on past
+the update V' by beta (V' - V), beta growing by half while that lowers E by the
+tolerance and halving, back at V', when it does not. On the 63 palettes of
+``bench_decompose.py`` this ends a quarter fewer steps at a 13 % lower RMSE (median;
+README, "The palette step by stage"). A colour that falls inside the hull of the others is
 re-seeded at the worst-explained colour. Then each palette colour is pulled
 towards colours that really occur, so that it stays editable: towards
 ``COMMON_RADIUS`` (60 on 0-255) of the nearest common colour, one that covers
@@ -34,6 +39,8 @@ at least as well as the hull method's palette it started from.
 References
 ----------
 A. Cutler, L. Breiman. Archetypal analysis. Technometrics 36(4), 1994.
+A. M. S. Ang, N. Gillis. Accelerating nonnegative matrix factorization algorithms using
+extrapolation. Neural Computation 31(2), 2019.
 J. Tan, J.-M. Lien, Y. Gingold. Decomposing images into layers via RGB-space
 geometry. ACM TOG 36(1), 2017 (the initial palette).
 """
@@ -58,6 +65,13 @@ ANCHOR_WEIGHT = 1e-4
 #: Iterations stop when the binned RMSE (0-255) improves by less than this.
 RMSE_STEP_TOL = 0.005
 MAX_ITERATIONS = 100
+#: Extrapolation of the palette steps (module docstring): its first factor beta, the
+#: factor beta grows by while that pays, its largest value, and the factor it shrinks by
+#: when not.
+EXTRAPOLATION = 1.0
+EXTRAPOLATION_GROWTH = 1.5
+EXTRAPOLATION_MAX = 8.0
+EXTRAPOLATION_SHRINK = 2.0
 #: A palette colour is pulled towards the nearest common colour as long as the binned
 #: RMSE rises by at most this share (the "equal within 2 %" of the benchmark).
 NEAR_COMMON_COST = 0.02
@@ -165,10 +179,11 @@ def refine_palette(palette: np.ndarray, bins: np.ndarray, shares: np.ndarray,
 
 
 def _alternate(palette, bins, shares) -> tuple[np.ndarray, float]:
-    """Weight and palette steps while the binned RMSE (0-255) falls by at least
+    """Weight and extrapolated palette steps while the binned RMSE (0-255) falls by at least
     ``RMSE_STEP_TOL``; the best palette and its error."""
     k = len(palette)
     best, best_error = palette, np.inf
+    beta, update = EXTRAPOLATION, None  # update: the last palette step, before extrapolation
     for _ in range(MAX_ITERATIONS):
         poly = polytope_from_points(palette)
         if len(poly.vertices) < k:
@@ -180,11 +195,16 @@ def _alternate(palette, bins, shares) -> tuple[np.ndarray, float]:
         residual = bins - weights @ palette
         error = 255.0 * np.sqrt(np.dot(shares, np.einsum("ij,ij->i", residual, residual)) / 3)
         if error > best_error - RMSE_STEP_TOL:
+            if update is not None:  # the extrapolation did not pay: back to the update
+                palette, update, beta = update, None, beta / EXTRAPOLATION_SHRINK
+                continue
             if error < best_error:
                 best, best_error = palette, error
             break
         best, best_error = palette, error
-        palette = _palette_step(weights, shares, bins, palette)
+        update = _palette_step(weights, shares, bins, palette)
+        palette = np.clip(update + beta * (update - palette), 0.0, 1.0)
+        beta = min(beta * EXTRAPOLATION_GROWTH, EXTRAPOLATION_MAX)
     return best, best_error
 
 

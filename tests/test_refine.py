@@ -6,7 +6,14 @@ import pytest
 
 from palette_core import ColourSet, LoadedImage, polytope_rmse
 from palette_core.palettes import palette_polytope
-from palette_core.refine import _box_qp, binned_colours, common_colours, refined_palette
+from palette_core.polytope import polytope_from_points
+from palette_core.refine import (
+    _alternate,
+    _box_qp,
+    binned_colours,
+    common_colours,
+    refined_palette,
+)
 
 from .helpers import weight_invariants
 
@@ -112,6 +119,17 @@ def test_box_qp_matches_brute_force(rng):
 
 def _objective(a, b, x):
     return 0.5 * x @ a @ x - b @ x
+
+
+def test_extrapolated_steps_report_their_palettes_error(rng):
+    """Steps that overshoot fall back to the plain update: the palette returned has the error
+    returned (the binned RMSE), below the start's."""
+    colours = rng.dirichlet(np.full(6, 0.3), 4000) @ rng.random((6, 3))
+    bins, shares = binned_colours(colours, np.ones(len(colours), int))
+    start = rng.random((6, 3))
+    palette, error = _alternate(start, bins, shares)
+    assert error == pytest.approx(polytope_rmse(bins, shares, polytope_from_points(palette)))
+    assert error < polytope_rmse(bins, shares, polytope_from_points(start))
 
 
 def test_bins_and_common_colours(rng):
