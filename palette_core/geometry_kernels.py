@@ -371,6 +371,8 @@ def _lp_vertex(a, b, c, x):
     set is empty, or has no vertex where c is least).
     """
     m, n = a.shape
+    if n == 3:
+        return _lp_vertex_3d(a, b, c, x)
     if m < n:
         return False
     basis = np.arange(n)
@@ -386,17 +388,8 @@ def _lp_vertex(a, b, c, x):
             for i in range(n):
                 square[i] = a[basis[i]]
                 rhs[i] = b[basis[i]]
-            if _solve_square(square, rhs, x):
-                feasible = True
-                for row in range(m):
-                    value = -b[row]
-                    for j in range(n):
-                        value += a[row, j] * x[j]
-                    if value < -LP_FEASIBILITY_TOL:
-                        feasible = False
-                        break
-                if feasible:
-                    return True
+            if _solve_square(square, rhs, x) and _feasible(a, b, x):
+                return True
         i = n - 1
         while i >= 0 and basis[i] == m - n + i:
             i -= 1
@@ -405,6 +398,46 @@ def _lp_vertex(a, b, c, x):
         basis[i] += 1
         for j in range(i + 1, n):
             basis[j] = basis[j - 1] + 1
+
+
+@njit(cache=True)
+def _feasible(a, b, x):
+    """a x >= b, row by row, to within ``LP_FEASIBILITY_TOL``."""
+    for row in range(a.shape[0]):
+        value = -b[row]
+        for j in range(a.shape[1]):
+            value += a[row, j] * x[j]
+        if value < -LP_FEASIBILITY_TOL:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _lp_vertex_3d(a, b, c, x):
+    """``_lp_vertex`` for three variables, the bases in the same order: the dual weights by
+    Cramer's rule, from cross products of the basis's first two rows that every third row
+    shares."""
+    m = a.shape[0]
+    square = np.empty((3, 3))
+    rhs = np.empty(3)
+    for i in range(m):
+        for j in range(i + 1, m):
+            ij = np.cross(a[i], a[j])
+            cj = np.cross(c, a[j])
+            ic = np.cross(a[i], c)
+            for k in range(j + 1, m):
+                det = _dot3(a[k], ij)
+                if abs(det) < LP_PIVOT_TOL:
+                    continue
+                if (_dot3(a[k], cj) / det < -LP_OPTIMALITY_TOL
+                        or _dot3(a[k], ic) / det < -LP_OPTIMALITY_TOL
+                        or _dot3(c, ij) / det < -LP_OPTIMALITY_TOL):
+                    continue
+                square[0], square[1], square[2] = a[i], a[j], a[k]
+                rhs[0], rhs[1], rhs[2] = b[i], b[j], b[k]
+                if _solve_square(square, rhs, x) and _feasible(a, b, x):
+                    return True
+    return False
 
 
 @njit(cache=True)
