@@ -1,8 +1,9 @@
-"""Numba kernels: closest points on convex polytopes and mean value coordinates.
+"""Numba kernels: closest points on convex polytopes, mean value coordinates, and the
+edge-collapse LPs of hull simplification.
 
 Arrays in, arrays out, no validation: every array is C-contiguous float64 (index
-arrays int64) so each kernel compiles once. The wrappers in ``polytope.py`` and
-``mvc.py`` validate, cast and restore shapes.
+arrays int64) so each kernel compiles once. The wrappers in ``polytope.py``,
+``mvc.py`` and ``hull.py`` validate, cast and restore shapes.
 
 References
 ----------
