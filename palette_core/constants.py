@@ -19,10 +19,10 @@ FACE_TOL = 1e-10
 INSIDE_TOL = 1e-12
 
 #: The edge-collapse LPs of hull simplification (``geometry_kernels.collapse_points``):
-#: a point counts as outside a facet plane when n . v + offset >= -LP_FEASIBILITY_TOL;
-#: a basis as optimal when its dual weights are >= -LP_OPTIMALITY_TOL (HiGHS's two
-#: tolerances, named as in HiGHS); and as singular when a pivot is below LP_PIVOT_TOL
-#: (its rows are unit normals).
+#: a point counts as outside a facet plane when n . v + offset >= -LP_FEASIBILITY_TOL,
+#: a basis as optimal when its dual weights are >= -LP_OPTIMALITY_TOL, and as singular
+#: when a pivot (for three variables, its determinant) is below LP_PIVOT_TOL (its rows
+#: are unit normals).
 LP_FEASIBILITY_TOL = 1e-9
 LP_OPTIMALITY_TOL = 1e-12
 LP_PIVOT_TOL = 1e-12

@@ -175,18 +175,17 @@ def _facets_touching(facets: np.ndarray, n_ids: int) -> list[list[int]]:
 
 def _solve_collapses(blocks, normals, offsets, measures, box, penalty) -> list[tuple]:
     """The collapse LP of each block of facets (``geometry_kernels.collapse_points``):
-    [(slack, added volume, point)], slack and volume NaN where the edge cannot collapse
-    with all colours kept inside and ``penalty`` is 0 (least slack not asked for)."""
+    [(slack, added volume, point)], all NaN where the edge cannot collapse with every
+    colour kept inside and ``penalty`` is 0 (its least slack not asked for)."""
     if not blocks:
         return []
     d = normals.shape[1]
+    rows = np.concatenate(blocks)
     starts = np.cumsum([0] + [len(block) for block in blocks])
     solution = np.empty((len(blocks), d + 1))
     geometry_kernels.collapse_points(np.ascontiguousarray(normals), np.ascontiguousarray(offsets),
-                                     measures, np.concatenate(blocks), starts, box, penalty,
-                                     solution)
+                                     measures, rows, starts, box, penalty, solution)
     v, slack = solution[:, :d], solution[:, d]
-    rows = np.concatenate(blocks)
     block_of_row = np.repeat(np.arange(len(blocks)), np.diff(starts))
     gradient = np.zeros((len(blocks), d))
     np.add.at(gradient, block_of_row, measures[rows, None] * normals[rows] / d)
