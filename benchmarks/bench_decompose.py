@@ -98,13 +98,29 @@ PROFILED = [("astronaut", 6), ("coffee", 6), ("coffee", 8), ("chelsea", 6), ("ro
             ("hubble_deep_field", 6)]
 
 
+#: Times the first call of a numba kernel (a projection) in a fresh process: numba then
+#: loads its typing and lowering registries, whichever kernel comes first.
+FIRST_KERNEL_CALL = """
+import time
+import numpy as np
+from palette_core.polytope import polytope_from_points, project_to_polytope
+poly = polytope_from_points(np.eye(3).tolist() + [[0, 0, 0]])
+start = time.perf_counter()
+project_to_polytope(np.ones((1, 3)), poly)
+print(time.perf_counter() - start)
+"""
+
+
 def profile(photos: list[tuple[str, int]], reference: list[str] | None = None) -> None:
-    """The refined palette step by stage, in this process (best of 3, kernels compiled):
-    the hull simplification (its collapse LPs apart) and the refinement; then one fresh
-    ``palette-decompose`` process per photo (best of 3 wall times), split by the stage times
-    it prints, the rest being Python's start and the imports; with ``reference`` (a
+    """The refined palette step by stage, in this process (kernels compiled): the hull
+    simplification (its collapse LPs apart) and the refined palette, each the best of 3,
+    the refinement being their difference; then one fresh ``palette-decompose`` process
+    per photo (best of 3 wall times), split by the stage times it prints, the rest being
+    Python's start and the imports; with ``reference`` (a
     checkout and its Python), the reference's palette step in a fresh process
     (``reference_hull.py``, once) and its time over ours, in a fresh process and warm.
+    Last, numba's first kernel call in a fresh process (``FIRST_KERNEL_CALL``, best of 3),
+    a part of the palette stage above that no palette work can remove.
     Run it with ``PYTHONPATH=<another checkout>`` to profile that code the same way."""
     import subprocess
     import sys
@@ -131,17 +147,17 @@ def profile(photos: list[tuple[str, int]], reference: list[str] | None = None) -
             colour_set = ColourSet.from_images([photo(name)])
             colours, counts = colour_set.colours, colour_set.counts
             palette_polytope(colours, counts, k)  # compile
-            best = {}
+            hulls, palettes = [], []  # each the best of 3 alone: the refinement is the rest
             for _ in range(3):
                 spent[0] = 0.0
                 start = time.perf_counter()
                 hull.extract_palette(colours, counts, k)
-                hull_s, lp_s = time.perf_counter() - start, spent[0]
+                hulls.append((time.perf_counter() - start, spent[0]))
                 start = time.perf_counter()
                 poly = palette_polytope(colours, counts, k)
-                refine_s = time.perf_counter() - start - hull_s
-                if not best or hull_s + refine_s < best["hull"] + best["refine"]:
-                    best = {"hull": hull_s, "lp": lp_s, "refine": refine_s}
+                palettes.append(time.perf_counter() - start)
+            (hull_s, lp_s), palette_s = min(hulls), min(palettes)
+            best = {"hull": hull_s, "lp": lp_s, "refine": palette_s - hull_s}
             rmse = polytope_rmse(colours, counts, poly)
             png = Path(folder) / f"{name}.png"
             Image.fromarray(photo(name).pixels).save(png)
@@ -164,6 +180,10 @@ def profile(photos: list[tuple[str, int]], reference: list[str] | None = None) -
                   + (_versus_reference(reference, png, k, folder, stages["palette"],
                                        best["hull"] + best["refine"]) if reference else ""),
                   flush=True)
+    first = min(float(subprocess.run([sys.executable, "-c", FIRST_KERNEL_CALL], capture_output=True,
+                                     text=True, check=True).stdout) for _ in range(3))
+    print(f"numba's first kernel call in a fresh process: {first:.2f} s (best of 3)")
+
 
 
 def _versus_reference(reference: list[str], png: Path, k: int, folder: str, fresh: float,
