@@ -116,12 +116,12 @@ def profile(photos: list[tuple[str, int]], reference: list[str] | None = None) -
     simplification (its collapse LPs apart) and the refined palette, each the best of 3,
     the refinement being their difference; then one fresh ``palette-decompose`` process
     per photo (best of 3 wall times), split by the stage times it prints, the rest being
-    Python's start and the imports; with ``reference`` (a
-    checkout and its Python), the reference's palette step in a fresh process
-    (``reference_hull.py``, once) and its time over ours, in a fresh process and warm.
-    Last, numba's first kernel call in a fresh process (``FIRST_KERNEL_CALL``, best of 3),
-    a part of the palette stage above that no palette work can remove.
-    Run it with ``PYTHONPATH=<another checkout>`` to profile that code the same way."""
+    Python's start and the imports; with ``reference`` (a checkout and its Python), the
+    reference's palette step in a fresh process (``reference_hull.py``, once) and its time
+    over ours, in a fresh process and warm. Last, numba's first kernel call in a fresh
+    process (``FIRST_KERNEL_CALL``, best of 3), a part of the palette stage above that no
+    palette work can remove. Run it with ``PYTHONPATH=<another checkout>`` to profile that
+    code the same way."""
     import subprocess
     import sys
     import tempfile
@@ -183,7 +183,6 @@ def profile(photos: list[tuple[str, int]], reference: list[str] | None = None) -
     first = min(float(subprocess.run([sys.executable, "-c", FIRST_KERNEL_CALL], capture_output=True,
                                      text=True, check=True).stdout) for _ in range(3))
     print(f"numba's first kernel call in a fresh process: {first:.2f} s (best of 3)")
-
 
 
 def _versus_reference(reference: list[str], png: Path, k: int, folder: str, fresh: float,
