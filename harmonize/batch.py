@@ -11,7 +11,8 @@ from tqdm import tqdm
 
 from palette_core.basis import weights_to_rgb
 from palette_core.errors import InputError
-from palette_core.outputs import atomic_outputs, check_writable, inside, save_image
+from palette_core.folders import inside
+from palette_core.outputs import atomic_outputs, check_writable, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, is_zarr, write_stack
 from palette_core.stack.zarr import check_store_output

@@ -43,7 +43,15 @@ MAX_CAMERA_PIXELS = 1 << 26
 
 @dataclass
 class Intrinsics:
-    """Pinhole camera shared by all frames: focal lengths and principal point in pixels."""
+    """Pinhole camera shared by all frames: focal lengths and principal point in pixels.
+
+    Raises
+    ------
+    InputError
+        Unless the sizes are whole, positive and at most ``MAX_CAMERA_PIXELS`` in all, the
+        focal lengths finite and positive, and the principal point finite and within one
+        image size of the image (cameras come from files we did not write).
+    """
 
     width: int
     height: int
@@ -51,6 +59,19 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
+
+    def __post_init__(self):
+        w, h, fx, fy, cx, cy = (self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+        sizes = all(isinstance(v, (int, np.integer)) and v >= 1 for v in (w, h))
+        numbers = all(isinstance(v, (int, float, np.number)) and not isinstance(v, bool)
+                      and math.isfinite(v) for v in (fx, fy, cx, cy))
+        if not (sizes and numbers and w * h <= MAX_CAMERA_PIXELS and fx > 0 and fy > 0
+                and -w <= cx <= 2 * w and -h <= cy <= 2 * h):
+            raise InputError(f"a camera of {w!r}x{h!r} pixels, focal lengths {fx!r}, {fy!r} and "
+                             f"principal point ({cx!r}, {cy!r}): sizes must be whole and "
+                             f"positive (at most {MAX_CAMERA_PIXELS} pixels), focal lengths "
+                             "finite and positive, the principal point finite and near the "
+                             "image")
 
     def downscaled(self, factor: int) -> Intrinsics:
         """The camera of images ``factor`` times smaller (whole pixels, as ``data`` crops
@@ -65,8 +86,7 @@ class Intrinsics:
 
     @classmethod
     def from_dict(cls, data, source: str) -> Intrinsics:
-        """The camera of a checkpoint's ``intrinsics``: whole positive sizes of at most
-        ``MAX_CAMERA_PIXELS``, finite positive focal lengths, a finite principal point.
+        """The camera of a checkpoint's ``intrinsics`` (checked like any camera).
 
         Raises
         ------
@@ -76,16 +96,15 @@ class Intrinsics:
         names = ("width", "height", "fx", "fy", "cx", "cy")
         if not isinstance(data, dict) or set(data) != set(names):
             raise InputError(f"{source}: intrinsics must hold {', '.join(names)}")
-        values = [data[n] for n in names]
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                   and math.isfinite(v) for v in values):
-            raise InputError(f"{source}: intrinsics must be finite numbers")
-        width, height, fx, fy, cx, cy = values
-        if (not isinstance(width, int) or not isinstance(height, int) or width < 1
-                or height < 1 or width * height > MAX_CAMERA_PIXELS or fx <= 0 or fy <= 0):
-            raise InputError(f"{source}: a camera of {width}x{height} pixels and focal lengths "
-                             f"{fx}, {fy} (at most {MAX_CAMERA_PIXELS} pixels, focal > 0)")
-        return cls(width, height, float(fx), float(fy), float(cx), float(cy))
+        return checked_camera(source, *(data[n] for n in names))
+
+
+def checked_camera(source: str, *values) -> Intrinsics:
+    """``Intrinsics(*values)``, its InputError naming ``source``."""
+    try:
+        return Intrinsics(*values)
+    except InputError as exc:
+        raise InputError(f"{source}: {exc}") from None
 
 
 def focal_length(width: int, fov_x: float) -> float:

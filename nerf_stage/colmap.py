@@ -21,7 +21,7 @@ import numpy as np
 
 from palette_core.errors import InputError
 
-from .cameras import Intrinsics
+from .cameras import Intrinsics, checked_camera
 
 #: Where a model may sit in a folder, in the order looked at (COLMAP's own layout first).
 MODEL_FOLDERS = ("sparse/0", "sparse", ".")
@@ -68,7 +68,20 @@ def read_model(model: str | os.PathLike):
             from None
     if reconstruction.num_reg_images() == 0:
         raise InputError(f"the COLMAP model in {model} registers no image")
+    for camera in reconstruction.cameras.values():
+        check_camera(camera, f"the COLMAP model in {model}")
     return reconstruction
+
+
+def check_camera(camera, source: str) -> None:
+    """InputError unless ``camera``'s parameters are finite and its pinhole part a valid
+    camera (``cameras.Intrinsics``), naming ``source``."""
+    where = f"{source}: camera {camera.camera_id}"
+    if not np.isfinite(np.asarray(camera.params, np.float64)).all():
+        raise InputError(f"{where}: its parameters hold NaN or infinity: {camera.params}")
+    checked_camera(where, camera.width, camera.height, float(camera.focal_length_x),
+                   float(camera.focal_length_y), float(camera.principal_point_x),
+                   float(camera.principal_point_y))
 
 
 def distortion(camera) -> float:
@@ -101,9 +114,9 @@ def pinhole(camera, source: str) -> Intrinsics:
         raise InputError(f"{source}: camera model {camera.model_name} distorts the image by up "
                          f"to {moved:.1f} pixels; undistort it with nerf-stage poses "
                          f"{source} -o CAPTURE")
-    return Intrinsics(camera.width, camera.height, float(camera.focal_length_x),
-                      float(camera.focal_length_y), float(camera.principal_point_x),
-                      float(camera.principal_point_y))
+    return checked_camera(f"{source}: camera {camera.camera_id}", camera.width, camera.height,
+                          float(camera.focal_length_x), float(camera.focal_length_y),
+                          float(camera.principal_point_x), float(camera.principal_point_y))
 
 
 def model_frames(reconstruction, source: str):

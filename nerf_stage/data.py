@@ -41,7 +41,7 @@ from palette_core.errors import InputError
 from palette_core.io import open_image
 from palette_core.stack import WeightStack
 
-from .cameras import Intrinsics, focal_length
+from .cameras import Intrinsics, checked_camera, focal_length
 from .colmap import find_model, model_frames, read_model
 
 SPLITS = ("train", "val", "test")
@@ -138,7 +138,8 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
         with open_image(root / names[0]) as first:
             width, height = first.size
         focal = focal_length(width, angle)
-        frame_intrinsics = [Intrinsics(width, height, focal, focal, width / 2, height / 2)]
+        frame_intrinsics = [checked_camera(str(root / "transforms_train.json"), width, height,
+                                           focal, focal, width / 2, height / 2)]
     elif (root / "transforms.json").is_file():
         layout = "nerfstudio"
         names, splits, poses, frame_intrinsics, off_ring = _read_nerfstudio(root, frames_outside)
@@ -300,10 +301,12 @@ def _frames(data: dict, path: Path, default_suffix: str,
 
 
 def _frame_path(name: str, where: str, root: Path, frames_outside: bool) -> str:
-    """A frame's image ``name`` normalised, InputError if it lies outside ``root`` (unless
-    ``frames_outside``): a file from elsewhere cannot make us read what it does not hold."""
+    """A frame's image ``name`` normalised, InputError if it lies outside ``root``, by its
+    name or through a link (unless ``frames_outside``): a file from elsewhere cannot make us
+    read what it does not hold."""
     path = PurePosixPath(os.path.normpath(name))
-    if not frames_outside and (path.is_absolute() or path.parts[:1] == ("..",)):
+    if not frames_outside and (path.is_absolute() or path.parts[:1] == ("..",)
+                               or not (root / path).resolve().is_relative_to(root.resolve())):
         raise InputError(f"{where}: file_path {name!r} lies outside {root} "
                          "(--frames-outside reads it)")
     return path.as_posix()
@@ -340,10 +343,10 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
     for i, frame in enumerate(data["frames"]):
         own = {key: frame[key] for key in _CAMERA_KEYS if key in frame}
         fields, where = {**data, **own}, f"{path}: frames[{i}]" if own else path
-        cameras.append(Intrinsics(
-            width=_field(fields, "w", where, int), height=_field(fields, "h", where, int),
-            fx=_field(fields, "fl_x", where), fy=_field(fields, "fl_y", where),
-            cx=_field(fields, "cx", where), cy=_field(fields, "cy", where)))
+        cameras.append(checked_camera(
+            str(where), _field(fields, "w", where, int), _field(fields, "h", where, int),
+            _field(fields, "fl_x", where), _field(fields, "fl_y", where),
+            _field(fields, "cx", where), _field(fields, "cy", where)))
     sizes = {(camera.width, camera.height) for camera in cameras}
     if len(sizes) > 1:
         listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))

@@ -21,14 +21,15 @@ from PIL import Image
 
 from palette_core.basis import Basis, basis_terms, n_terms, weights_to_rgb
 from palette_core.errors import InputError, OutputExists
-from palette_core.outputs import atomic_outputs, inside, publish_folder, save_image
+from palette_core.folders import inside
+from palette_core.outputs import atomic_outputs, publish_folder, save_image
 from palette_core.palette_file import read_palette_json
 from palette_core.stack import NpzReader, WeightStack, check_names
 from palette_core.swatch import palette_swatch
 
 from .cameras import Intrinsics, orbit_poses
 from .fields import RGB
-from .regions import ColourRegion, PixelSamples, Region, region_from_dict
+from .regions import ColourRegion, PixelSamples, Region, check_count, region_from_dict
 from .run import Run, load_run, run_source
 
 RENDER_FILE = "render.npz"
@@ -109,6 +110,7 @@ class WeightRender:
             If a box or ellipsoid is given and the render kept no samples (rendered without
             regions, or format version 1), or a colour region names a colour the run lacks.
         """
+        check_count(list(regions), "this edit")
         places = [r for r in regions if isinstance(r, Region)]
         if places and self.samples is None:
             raise InputError("this render kept no samples to split by regions: render it "
@@ -190,11 +192,10 @@ def read_render(path: str | os.PathLike) -> WeightRender:
         names = npz.array("names", "U").tolist()
         basis, order = Basis.parse(npz.text("basis")), int(npz.array("order", "iu"))
         source = npz.json("source")
-        samples = (PixelSamples(npz.array("sample_pixel", "iu"), npz.array("sample_point", "f"),
-                                npz.array("sample_weight", "f"))
-                   if "sample_pixel" in npz else None)
+        samples = ((npz.array("sample_pixel", "iu"), npz.array("sample_point", "f"),
+                    npz.array("sample_weight", "f")) if "sample_pixel" in npz else None)
         inside = npz.array("inside", "f") if "inside" in npz else None
-        regions = ([region_from_dict(r, str(path)) for r in _listed(npz.json("regions"), path)]
+        regions = ([region_from_dict(r, str(path)) for r in check_count(npz.json("regions"), str(path))]
                    if inside is not None else [])
     check_names(names, str(path))
     n = len(names)
@@ -209,25 +210,24 @@ def read_render(path: str | os.PathLike) -> WeightRender:
     if not all(np.isfinite(x).all() for x in (weights, opacity, inside) if x is not None):
         raise InputError(f"{path}: weights or opacity hold NaN or infinity")
     if samples is not None:
-        _check_samples(samples, opacity.size, path)
+        samples = PixelSamples(*_checked_samples(*samples, opacity.size, path))
     return WeightRender(weights, opacity, names, palette.astype(np.float64), basis, order,
                         background.astype(np.float64), source, samples, regions, inside)
 
 
-def _listed(value, path) -> list:
-    if not isinstance(value, list):
-        raise InputError(f"{path}: regions must be a list")
-    return value
 
 
-def _check_samples(samples: PixelSamples, pixels: int, path) -> None:
-    """InputError unless ``samples`` fit views of ``pixels`` pixels in all."""
-    p = len(samples.pixel)
-    if (samples.pixel.ndim != 1 or samples.point.shape != (p, 3)
-            or samples.weight.shape != (p,)
-            or (p and not 0 <= samples.pixel.min() <= samples.pixel.max() < pixels)
-            or not (np.isfinite(samples.point).all() and np.isfinite(samples.weight).all())):
+def _checked_samples(pixel: np.ndarray, point: np.ndarray, weight: np.ndarray, pixels: int,
+                     path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The samples' (P,) int64 pixels, (P, 3) float32 points and (P,) float32 weights,
+    InputError unless they fit views of ``pixels`` pixels in all (checked before anything is
+    sized by a pixel index)."""
+    p = len(pixel) if pixel.ndim == 1 else -1
+    if (p < 0 or point.shape != (p, 3) or weight.shape != (p,)
+            or (p and not 0 <= pixel.min() <= pixel.max() < pixels)
+            or not (np.isfinite(point).all() and np.isfinite(weight).all())):
         raise InputError(f"{path}: the samples behind its pixels are malformed")
+    return pixel.astype(np.int64), point.astype(np.float32), weight.astype(np.float32)
 
 
 def write_gif(path: Path, frames: np.ndarray, seconds_per_frame: float = 0.08) -> None:

@@ -116,6 +116,19 @@ class ColourRegion:
         return {"shape": self.shape, "colour": self.colour, "threshold": self.threshold}
 
 
+#: Most regions one edit applies inside: their samples' tests and the saved render grow with
+#: the count, and no edit needs more.
+MAX_REGIONS = 64
+
+
+def check_count(regions: list, where: str) -> list:
+    """``regions``, InputError if more than ``MAX_REGIONS`` (or not a list)."""
+    if not isinstance(regions, list) or len(regions) > MAX_REGIONS:
+        count = len(regions) if isinstance(regions, list) else "no list of"
+        raise InputError(f"{where}: {count} regions, at most {MAX_REGIONS} apply at once")
+    return regions
+
+
 def region_from_dict(data, where: str) -> Region | ColourRegion:
     """The region of a ``to_dict``, from a file named by ``where``; InputError if malformed."""
     if isinstance(data, dict) and data.get("shape") == ColourRegion.shape:
@@ -176,6 +189,7 @@ def read_regions(path: str | os.PathLike) -> list[Region | ColourRegion]:
     regions = data.get("regions") if isinstance(data, dict) else None
     if not isinstance(regions, list) or not regions:
         raise InputError(f"region file {path} must hold {{\"regions\": [regions...]}}")
+    check_count(regions, f"region file {path}")
     return [region_from_dict(r, f"region file {path}") for r in regions]
 
 

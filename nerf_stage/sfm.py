@@ -25,6 +25,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from palette_core.errors import InputError
+from palette_core.folders import files_in
 from palette_core.io import IMAGE_SUFFIXES, open_image
 from palette_core.outputs import check_apart, check_outdir, publish_folder
 
@@ -67,12 +68,13 @@ def list_photos(folder: str | os.PathLike) -> list[str]:
     ------
     InputError
         If ``folder`` is not a folder, holds fewer than ``MIN_PHOTOS`` files, a file that
-        is not an image, or images of different sizes.
+        is not an image, a link out of it (``folders.files_in``), or images of different
+        sizes.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder of photos")
-    names = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    names = [p.name for p in files_in(folder, recursive=False) if not p.name.startswith(".")]
     if len(names) < MIN_PHOTOS:
         raise InputError(f"{folder} holds {len(names)} photo(s); structure from motion needs "
                          f"at least {MIN_PHOTOS}")

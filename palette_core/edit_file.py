@@ -27,7 +27,8 @@ import numpy as np
 
 from .errors import InputError
 from .json_file import read_json
-from .outputs import atomic_outputs, check_outdir, check_writable, inside, publish_folder
+from .folders import copy_folder, inside
+from .outputs import atomic_outputs, check_outdir, check_writable, publish_folder
 from .palette_file import palette_entry, palette_to_hex, parse_palette
 from .selection import LocalEdit, Selection, parse_near
 from .stack import WeightStack
@@ -94,7 +95,7 @@ def _entry(edit: LocalEdit, i: int, staging: Path | None, folder: str) -> dict:
         if source.is_file():
             shutil.copyfile(source, staging / name)
         else:
-            shutil.copytree(source, staging / name)
+            copy_folder(source, staging / name)  # regular files: no link out is followed
         entry["mask"] = f"{folder}/{name}"
     elif selection.colour is not None:
         entry["colour"] = selection.colour

@@ -18,6 +18,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from .errors import InputError
+from .folders import files_in
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 
@@ -72,16 +73,15 @@ def find_images(inputs: list[str | os.PathLike],
     Raises
     ------
     InputError
-        If a path does not exist or a folder holds no image.
+        If a path does not exist, a folder holds no image or a link out of it
+        (``folders.files_in``).
     """
     if not inputs:
         raise InputError("no input given: name image files or folders")
     paths: list[Path] = []
     for item in map(Path, inputs):
         if item.is_dir():
-            found = sorted(
-                p for p in item.rglob("*") if p.is_file() and p.suffix.lower() in suffixes
-            )
+            found = files_in(item, suffixes=suffixes)
             if not found:
                 raise InputError(f"no images ({', '.join(suffixes)}) found in folder {item}")
             paths.extend(found)

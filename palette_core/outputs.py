@@ -207,23 +207,6 @@ def _libc():
         return None
 
 
-def inside(folder: str | os.PathLike, name: str) -> Path:
-    """``folder / name``, checked to lie inside ``folder`` (names come from files we read).
-
-    Raises
-    ------
-    InputError
-        If ``name`` is empty, absolute, holds a NUL or ``..``, or resolves outside.
-    """
-    folder = Path(folder)
-    path = folder / name
-    if (not name or "\0" in name or Path(name).is_absolute()
-            or ".." in Path(name).parts
-            or not path.resolve().is_relative_to(folder.resolve())):
-        raise InputError(f"refusing to write {name!r}: it would land outside {folder}")
-    return path
-
-
 def check_writable(paths: list[Path], force: bool) -> None:
     """Fail early if an output file exists (without ``force``) or its folder cannot be written.
 

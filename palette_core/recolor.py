@@ -10,7 +10,8 @@ import numpy as np
 
 from .basis import weights_to_rgb
 from .errors import InputError
-from .outputs import atomic_outputs, check_writable, inside, save_image
+from .folders import inside
+from .outputs import atomic_outputs, check_writable, save_image
 from .selection import LocalEdit, recolor_local
 from .stack import WeightStack, video_of
 
@@ -47,8 +48,9 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     for path in targets[:len(videos)]:
         video_codec(path)  # before anything is written
 
+    longest = max(max(stack.weights[i].shape[:2]) for i in range(len(stack.names)))
     for edit in edits:
-        edit.selection.check(len(stack.palette))
+        edit.selection.check(len(stack.palette), longest)
 
     def recoloured(i: int) -> np.ndarray:
         weights = np.asarray(stack.weights[i])

@@ -30,7 +30,7 @@ import numpy as np
 from .basis import Basis, basis_terms, weights_to_rgb
 from .errors import InputError
 from .io import IMAGE_SUFFIXES, open_image
-from .outputs import inside
+from .folders import inside
 from .stack import video_of
 
 
@@ -57,11 +57,20 @@ class Selection:
         if self.mask is not None and not Path(self.mask).exists():
             raise InputError(f"mask {self.mask} does not exist")
 
-    def check(self, k: int) -> None:
-        """InputError unless the selection fits a stack of ``k`` palette colours."""
+    def check(self, k: int, longest: int | None = None) -> None:
+        """InputError unless the selection fits a stack of ``k`` palette colours whose
+        longest image side is ``longest`` pixels: its feather can be no wider (a Gaussian's
+        kernel grows with its width)."""
         if self.colour is not None and not 0 <= self.colour < k:
             raise InputError(f"selected palette colour {self.colour} is not one of the "
                              f"palette's {k} (0 to {k - 1})")
+        if longest is not None:
+            self._check_feather(longest)
+
+    def _check_feather(self, longest: int) -> None:
+        if self.feather > longest:
+            raise InputError(f"selection feather {self.feather:g} is wider than the images "
+                             f"(at most {longest} pixels)")
 
     def values(self, name: str, weights: np.ndarray, rgb: np.ndarray,
                basis: Basis = Basis.ADDITIVE) -> np.ndarray:
@@ -82,7 +91,10 @@ class Selection:
             offset = rgb - np.asarray(self.near)
             m = (np.einsum("...c,...c->...", offset, offset) <= self.distance ** 2
                  ).astype(np.float64)
-        return _feathered(m, self.feather) if self.feather else m
+        if not self.feather:
+            return m
+        self._check_feather(max(m.shape))
+        return _feathered(m, self.feather)
 
     def _mask_file(self, name: str) -> Path:
         mask = Path(self.mask)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from .outputs import inside
+from .folders import inside
 from .palette_file import palette_to_hex
 
 

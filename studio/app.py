@@ -246,7 +246,11 @@ class Studio:
     def redraw(self) -> None:
         """Recolour what every tab shows (no network run in scene mode)."""
         start = time.perf_counter()
-        self.view.redraw()
+        try:
+            self.view.redraw()
+        except InputError as exc:  # a panel value no page of ours sends (a NaN box size)
+            self.say(f"**error:** {exc}")
+            return
         self.last_redraw_ms = 1000 * (time.perf_counter() - start)
 
     # Writing ------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from PIL import Image
 
 from palette_core.edit_file import write_edits
 from palette_core.errors import InputError
-from palette_core.outputs import inside
+from palette_core.folders import inside
 from palette_core.selection import LocalEdit, Selection
 from palette_core.stack import video_of
 
@@ -30,10 +30,12 @@ class Drawing:
     ----------
     size : callable
         Image index -> its (H, W).
+    count : int
+        How many images there are.
     """
 
-    def __init__(self, size):
-        self.size = size  # image index -> (H, W)
+    def __init__(self, size, count: int):
+        self.size, self.count = size, count  # image index -> (H, W); how many images
         self.masks: dict[int, np.ndarray] = {}
         self.near: tuple[np.ndarray, float] | None = None  # (RGB, distance)
 
@@ -45,7 +47,14 @@ class Drawing:
         self.near = None
 
     def box(self, i: int, corners: np.ndarray, feather: float) -> None:
-        """Paint the box between (2, 2) ``corners`` ((x, y) pixels of image ``i``)."""
+        """Paint the box between (2, 2) ``corners`` ((x, y) pixels of image ``i``).
+
+        Raises
+        ------
+        InputError
+            For what no page of ours sends (``_check``).
+        """
+        corners = self._check(i, corners, (2, 2), feather=feather)
         low, high = corners.min(0), corners.max(0)
         centre, half = (low + high) / 2, (high - low) / 2
 
@@ -57,11 +66,39 @@ class Drawing:
         self._paint(i, low, high, distance, feather)
 
     def dab(self, i: int, centre: np.ndarray, radius: float, feather: float) -> None:
-        """Paint a brush dab of ``radius`` pixels at (x, y) ``centre`` of image ``i``."""
+        """Paint a brush dab of ``radius`` pixels at (x, y) ``centre`` of image ``i``.
+
+        Raises
+        ------
+        InputError
+            For what no page of ours sends (``_check``).
+        """
+        centre = self._check(i, centre, (2,), radius=radius, feather=feather)
+
         def distance(x, y):
             return np.hypot(x - centre[0], y - centre[1]) - radius
 
         self._paint(i, centre - radius, centre + radius, distance, feather)
+
+    def _check(self, i, points, shape: tuple[int, ...], **sizes) -> np.ndarray:
+        """(shape) float64 ``points``, InputError unless ``i`` is an image index, the points
+        are finite and each of ``sizes`` (pixels) is finite, at least 0 and at most the
+        image's diagonal: a message from a browser is checked like a command-line argument."""
+        if not isinstance(i, int) or isinstance(i, bool) or i not in range(self.count):
+            raise InputError(f"no image {i!r} to draw on")
+        try:
+            points = np.asarray(points, np.float64).reshape(shape)
+        except (TypeError, ValueError):
+            raise InputError(f"a stroke's points must be {shape} numbers") from None
+        h, w = self.size(i)
+        diagonal = float(np.hypot(h, w))
+        if not np.isfinite(points).all():
+            raise InputError("a stroke's points must be finite")
+        for name, value in sizes.items():
+            if not (isinstance(value, (int, float)) and 0 <= value <= diagonal):
+                raise InputError(f"{name} must be a number in [0, {diagonal:.0f}] pixels "
+                                 f"(the image's diagonal), got {value!r}")
+        return points
 
     def _paint(self, i: int, low, high, distance, feather: float) -> None:
         h, w = self.size(i)

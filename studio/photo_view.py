@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from palette_core.basis import weights_to_rgb
+from palette_core.errors import InputError
+from palette_core.selection import Selection
 
 from .drawing import Drawing
 from .photos import THUMBNAIL_PIXELS, PhotoTarget
@@ -30,7 +32,7 @@ class PhotoView:
     def __init__(self, studio, target: PhotoTarget):
         self.studio, self.target = studio, target
         self.image = 0  # the image on screen
-        self.drawing = Drawing(target.size)
+        self.drawing = Drawing(target.size, len(target.names))
         self.last_selection_ms = float("nan")
 
     def default_palette_path(self) -> Path:
@@ -128,15 +130,19 @@ class PhotoView:
                                                     self.feather.value),
                            "painted: edits apply inside the brush strokes")
             return
-        h, w = self.target.size(self.image)
-        x, y = np.clip(point.astype(int), 0, [w - 1, h - 1])
-        weights = np.asarray(self.target.stack.weights[self.image][y, x], np.float64)
-        stack = self.target.stack
-        colour = weights_to_rgb(weights, stack.palette, stack.basis, stack.order)
 
         def pick() -> None:
+            h, w = self.target.size(self.image)
+            if not np.isfinite(point).all():
+                raise InputError("a click's point must be finite")
+            x, y = np.clip(point, 0, [w - 1, h - 1]).astype(int)
+            weights = np.asarray(self.target.stack.weights[self.image][y, x], np.float64)
+            stack = self.target.stack
+            colour = weights_to_rgb(weights, stack.palette, stack.basis, stack.order)
+            near = Selection(near=tuple(np.clip(colour, 0, 1).tolist()),
+                             distance=float(self.distance.value))  # InputError for NaN
             self.drawing.clear()
-            self.drawing.near = (np.clip(colour, 0, 1), float(self.distance.value))
+            self.drawing.near = (np.asarray(near.near), near.distance)
 
         self._selected(pick, "colour picked: edits apply where the image is near it")
 
@@ -145,7 +151,11 @@ class PhotoView:
         part of a stroke)."""
         with self.studio.lock:
             start = time.perf_counter()
-            change()
+            try:
+                change()
+            except InputError as exc:  # a message no page of ours sends
+                self.studio.say(f"**error:** {exc}")
+                return
             self.studio.redraw()
             self.last_selection_ms = 1000 * (time.perf_counter() - start)
             self.studio.say(message)

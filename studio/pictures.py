@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import viser.transforms as tf
 
+from palette_core.errors import InputError
+
 BACKDROP = np.array([33, 33, 38], np.uint8)  # letterbox bars around a photo
 MAX_ASPECT = 8.0  # widest (and tallest) view drawn: a browser's aspect cannot size a render
 
@@ -35,7 +37,11 @@ def bounded_aspect(camera) -> float:
 def camera_pose(camera) -> np.ndarray:
     """(4, 4) camera-to-world pose in our OpenGL convention from a viser camera (OpenCV
     axes: looks along +z, +y down)."""
+    wxyz, position = (np.asarray(v, np.float64) for v in (camera.wxyz, camera.position))
+    if wxyz.shape != (4,) or position.shape != (3,) or not (
+            np.isfinite(wxyz).all() and np.isfinite(position).all() and wxyz @ wxyz > 0):
+        raise InputError("the browser's camera must be a finite position and rotation")
     pose = np.eye(4)
-    pose[:3, :3] = tf.SO3(np.asarray(camera.wxyz)).as_matrix() @ np.diag([1.0, -1.0, -1.0])
-    pose[:3, 3] = camera.position
+    pose[:3, :3] = tf.SO3(wxyz / np.linalg.norm(wxyz)).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+    pose[:3, 3] = position
     return pose

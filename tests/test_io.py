@@ -148,5 +148,21 @@ def test_symlinked_input_keeps_its_name(tmp_path, rng):
     Image.fromarray(rng.integers(0, 256, (4, 4, 3), dtype=np.uint8)).save(
         tmp_path / "store" / "x1234.png")
     (tmp_path / "in" / "holiday.png").symlink_to(tmp_path / "store" / "x1234.png")
-    assert decompose.main([str(tmp_path / "in"), "-k", "4", "-o", str(tmp_path / "w.npz")]) == 0
+    link = tmp_path / "in" / "holiday.png"
+    assert decompose.main([str(link), "-k", "4", "-o", str(tmp_path / "w.npz")]) == 0
     assert read_stack(tmp_path / "w.npz").names == ["holiday.png"]
+
+
+def test_folder_links_out_are_refused(tmp_path, rng, capsys):
+    """A folder's link to a file outside it is not read (a folder from elsewhere could make
+    us decompose a private photo); named directly, the same link is read (above)."""
+    (tmp_path / "store").mkdir()
+    (tmp_path / "in").mkdir()
+    for name in ("x1234.png", "own.png"):
+        Image.fromarray(rng.integers(0, 256, (4, 4, 3), dtype=np.uint8)).save(
+            tmp_path / "store" / name)
+    (tmp_path / "in" / "own.png").write_bytes((tmp_path / "store" / "own.png").read_bytes())
+    (tmp_path / "in" / "holiday.png").symlink_to(tmp_path / "store" / "x1234.png")
+    assert decompose.main([str(tmp_path / "in"), "-k", "4", "-o", str(tmp_path / "w.npz")]) == 2
+    assert "holiday.png is a link out of" in capsys.readouterr().err
+    assert not (tmp_path / "w.npz").exists()

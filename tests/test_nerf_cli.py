@@ -190,7 +190,7 @@ def _crafted_run(scene_run, tmp_path, change):
 
 @pytest.mark.parametrize("change, message", [
     (lambda s: s["intrinsics"].update(width=10**6, height=10**6), "a camera of 1000000x1000000"),
-    (lambda s: s["intrinsics"].update(fx=float("nan")), "finite numbers"),
+    (lambda s: s["intrinsics"].update(fx=float("nan")), "focal lengths finite"),
     (lambda s: s.update(basis="transport", order=1000), "channels, more than 4096"),
     (lambda s: s.update(palette=[[2.0, 0.0, 0.0]] * 4), "palette must have shape"),
     (lambda s: s["box"].update(half=[0.0, 1.0, 1.0]), "positive extent"),

@@ -16,7 +16,8 @@ from PIL import Image
 from nerf_stage.cli import main as nerf_stage
 from palette_core import InputError
 from palette_core.cli import decompose, recolor
-from palette_core.outputs import atomic_outputs, inside, publish_folder
+from palette_core.folders import inside
+from palette_core.outputs import atomic_outputs, publish_folder
 
 from .helpers import expect_error, stack_file
 

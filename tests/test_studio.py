@@ -128,7 +128,7 @@ def test_photo_export_matches_palette_recolor(tmp_path, rng):
 
 
 def test_drawn_boxes_and_dabs_are_soft_masks_at_the_images_size():
-    drawing = Drawing(lambda i: (20, 30))
+    drawing = Drawing(lambda i: (20, 30), 2)
     assert not drawing
     drawing.box(0, np.array([[20.0, 15.0], [5.0, 4.0]]), feather=0)  # corners in any order
     hard = drawing.masks[0]
@@ -145,7 +145,7 @@ def test_drawn_boxes_and_dabs_are_soft_masks_at_the_images_size():
 def test_a_drawn_edit_shows_exports_and_replays_as_the_library_makes_it(tmp_path, rng):
     stack_path = tiny_stack(tmp_path / "w.npz", rng)
     target = PhotoTarget.open(stack_path)
-    drawing = Drawing(target.size)
+    drawing = Drawing(target.size, len(target.names))
     drawing.box(1, np.array([[2.0, 1.0], [9.0, 6.0]]), feather=1.5)
     edited = PALETTE[::-1]
     view = target.view(1, edited, drawing=drawing)
@@ -163,7 +163,7 @@ def test_a_drawn_edit_shows_exports_and_replays_as_the_library_makes_it(tmp_path
     for path in exported:
         assert path.read_bytes() == (tmp_path / "cli" / path.name).read_bytes()
     with pytest.raises(InputError, match="nothing is selected"):
-        Drawing(target.size).save(tmp_path / "none.json", target.stack, edited)
+        Drawing(target.size, len(target.names)).save(tmp_path / "none.json", target.stack, edited)
 
 
 def test_letterbox_centres_the_image():

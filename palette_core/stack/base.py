@@ -71,14 +71,17 @@ def video_of(name: str) -> str | None:
 
 
 def is_zarr(path: str | os.PathLike) -> bool:
-    """Whether ``path`` names a Zarr store (``NAME.zarr``, a folder, or an fsspec URL)."""
-    text = str(path)
-    return text.rstrip("/").endswith(".zarr") or "://" in text or Path(path).is_dir()
+    """Whether ``path`` names a Zarr store (``NAME.zarr``, an fsspec URL, or a folder not
+    named ``.npz``): a suffix decides the format before what lies at the path does."""
+    text = str(path).rstrip("/")
+    if text.lower().endswith(".npz"):
+        return False
+    return text.endswith(".zarr") or "://" in text or Path(path).is_dir()
 
 
 def check_names(names: list[str], source: str) -> None:
     """InputError unless every name is a distinct, non-empty relative path without ``..``
-    or NUL: names become output paths (``outputs.inside`` checks those again)."""
+    or NUL: names become output paths (``folders.inside`` checks those again)."""
     seen = set()
     for name in names:
         parts = PurePosixPath(name).parts

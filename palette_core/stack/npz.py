@@ -17,6 +17,9 @@ from ..basis import Basis, check_basis
 from ..errors import InputError
 from .base import FORMAT, WeightStack, check_dtype, check_meta, check_names
 
+#: Most that deflate can expand its input (a 258-byte match from about two bits): the
+#: largest array a deflated member of n bytes can hold is about n times this.
+MAX_DEFLATE_RATIO = 1032
 
 def write_npz_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None = None) -> None:
     """Write ``stack`` as NPZ format v1 to ``file`` (a path or a binary file object).
@@ -117,8 +120,11 @@ def read_npz_stack(path: str | os.PathLike) -> WeightStack:
 class NpzReader:
     """The arrays of an NPZ file, read one key at a time, never unpickled.
 
-    Each array's header is read first and its declared size compared with the
-    bytes the member holds, so a crafted shape cannot make us allocate memory.
+    Nothing a file declares is trusted before it is checked against what the file holds:
+    a member's compressed bytes must lie inside the file, its uncompressed size (which the
+    zip directory states) can be at most what those bytes expand to (``MAX_DEFLATE_RATIO``)
+    and at most this machine's memory, and the ``.npy`` header's shape and dtype must
+    account for exactly that size, all before any array is allocated.
     """
 
     def __init__(self, path: Path, what: str):
@@ -127,6 +133,7 @@ class NpzReader:
     def __enter__(self) -> NpzReader:
         try:
             self.zip = zipfile.ZipFile(self.path)
+            self.size = os.fstat(self.zip.fp.fileno()).st_size
         except (OSError, zipfile.BadZipFile, ValueError) as exc:
             raise InputError(f"{self.path} is not a readable NPZ file ({self.what}): "
                              f"{exc}") from None
@@ -144,6 +151,7 @@ class NpzReader:
         if key not in self.members:
             raise InputError(f"{self.path}: missing key {key!r} (is it {self.what}?)")
         info = self.zip.getinfo(self.members[key])
+        self._check_sizes(key, info)
         try:
             with self.zip.open(info) as f:
                 version = np.lib.format.read_magic(f)
@@ -162,6 +170,20 @@ class NpzReader:
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise InputError(f"{self.path}: key {key!r} cannot be read: {exc}") from None
 
+    def _check_sizes(self, key: str, info: zipfile.ZipInfo) -> None:
+        """InputError unless member ``key`` may hold the size its directory entry states."""
+        ratio = {zipfile.ZIP_STORED: 1, zipfile.ZIP_DEFLATED: MAX_DEFLATE_RATIO}
+        if info.compress_type not in ratio:
+            raise InputError(f"{self.path}: key {key!r} is compressed with method "
+                             f"{info.compress_type} (NPZ files are stored or deflated)")
+        if (info.header_offset + info.compress_size > self.size
+                or info.file_size > ratio[info.compress_type] * info.compress_size + 64):
+            raise InputError(f"{self.path}: key {key!r} states {info.file_size} bytes, more "
+                             f"than its {info.compress_size} bytes in the file can hold")
+        if info.file_size > memory_bytes():
+            raise InputError(f"{self.path}: key {key!r} states {info.file_size} bytes, more "
+                             "than this machine's memory")
+
     def text(self, key: str) -> str:
         value = self.array(key, "U")
         if value.ndim != 0:
@@ -173,3 +195,8 @@ class NpzReader:
             return json.loads(self.text(key))
         except (json.JSONDecodeError, RecursionError) as exc:
             raise InputError(f"{self.path}: {key} is not valid JSON: {exc}") from None
+
+
+def memory_bytes() -> int:
+    """This machine's physical memory in bytes: no array we read can be larger."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")

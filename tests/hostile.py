@@ -1,0 +1,109 @@
+"""Hostile files for the security tests and the fuzzing harness: NPZ members whose headers
+lie, zip directories that lie about sizes, and a child process under a memory cap in which
+a reader meets them."""
+
+from __future__ import annotations
+
+import io
+import os
+import resource
+import struct
+import sys
+import traceback
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+
+def npy_bytes(array: np.ndarray, shape: tuple | None = None, dtype: str | None = None) -> bytes:
+    """``array`` as a ``.npy`` file, its header declaring ``shape`` and ``dtype`` instead when
+    given (the data stays ``array``'s bytes)."""
+    header = {"descr": dtype or np.lib.format.dtype_to_descr(array.dtype),
+              "fortran_order": False, "shape": tuple(array.shape if shape is None else shape)}
+    out = io.BytesIO()
+    np.lib.format.write_array_header_2_0(out, header)
+    return out.getvalue() + np.ascontiguousarray(array).tobytes()
+
+
+def write_zip(path: Path, members: dict[str, bytes], claimed: dict[str, int] | None = None,
+              deflate: bool = False) -> None:
+    """A zip file of ``members`` written by hand (ZIP64 sizes always), whose directory claims
+    the uncompressed sizes in ``claimed`` instead of the true ones."""
+    claimed = claimed or {}
+    body, directory = bytearray(), bytearray()
+    for name, data in members.items():
+        stored = zlib.compress(data)[2:-4] if deflate else data
+        method, crc, raw = (8 if deflate else 0), zlib.crc32(data), name.encode()
+        size = claimed.get(name, len(data))
+        extra = struct.pack("<HHQQ", 1, 16, size, len(stored))
+        offset = len(body)
+        body += struct.pack("<IHHHHHIIIHH", 0x04034B50, 45, 0, method, 0, 0, crc,
+                            0xFFFFFFFF, 0xFFFFFFFF, len(raw), len(extra)) + raw + extra + stored
+        extra = struct.pack("<HHQQQ", 1, 24, size, len(stored), offset)
+        directory += struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 45, 45, 0, method, 0, 0, crc,
+                                 0xFFFFFFFF, 0xFFFFFFFF, len(raw), len(extra), 0, 0, 0, 0,
+                                 0xFFFFFFFF) + raw + extra
+    start, n = len(body), len(members)
+    end = struct.pack("<IQHHIIQQQQ", 0x06064B50, 44, 45, 45, 0, 0, n, n, len(directory), start)
+    locator = struct.pack("<IIQI", 0x07064B50, 0, start + len(directory), 1)
+    tail = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFF, 0)
+    Path(path).write_bytes(bytes(body + directory + end + locator + tail))
+
+
+def lying_npz(source: Path, target: Path, key: str, rows: int = 10**12) -> None:
+    """``source`` NPZ rewritten as ``target``, member ``key``'s header declaring ``rows`` rows
+    and the zip directory claiming the bytes that would take."""
+    with np.load(source, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    members = {f"{name}.npy": npy_bytes(array) for name, array in arrays.items()}
+    array = arrays[key]
+    shape = (rows, *array.shape[1:])
+    data = npy_bytes(array, shape)
+    members[f"{key}.npy"] = data
+    declared = rows * int(np.prod(array.shape[1:], dtype=np.int64)) * array.dtype.itemsize
+    header = len(data) - array.nbytes
+    write_zip(target, members, {f"{key}.npy": header + declared})
+
+
+#: Address space a reader may add in ``capped``: far more than any tiny file needs, far less
+#: than a lying header asks for.
+MEMORY_CAP = 1 << 30
+
+
+def capped(call, cap: int = MEMORY_CAP) -> tuple[int, str]:
+    """Run ``call() -> int`` (a command's ``main``) in a forked child whose address space may
+    grow by at most ``cap`` bytes; (its exit code, what it wrote to stderr). A Python
+    exception in the child is exit code 99 with its traceback."""
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: never returns
+        code = 99
+        try:
+            os.close(read)
+            os.dup2(write, 2)
+            sys.stderr = os.fdopen(2, "w", closefd=False)
+            used = _address_space()
+            resource.setrlimit(resource.RLIMIT_AS, (used + cap, used + cap))
+            code = call()
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stderr.flush()
+            os._exit(code if isinstance(code, int) else 98)
+    os.close(write)
+    with os.fdopen(read) as pipe:
+        err = pipe.read()
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status), err
+
+
+def _address_space() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_refused(code: int, err: str) -> None:
+    """The contract for a hostile input: exit code 2 and one line on stderr, no traceback."""
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, (code, err[-3000:])
