@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from palette_core.errors import InputError
+from palette_core.errors import InputError, first_line
 
 from .cameras import Intrinsics, checked_camera
 
@@ -64,8 +64,7 @@ def read_model(model: str | os.PathLike):
     try:
         reconstruction = pycolmap.Reconstruction(Path(model))
     except Exception as exc:  # pycolmap raises its own C++ exceptions
-        raise InputError(f"cannot read the COLMAP model in {model}: {exc}".splitlines()[0]) \
-            from None
+        raise InputError(f"cannot read the COLMAP model in {model}: {first_line(exc)}") from None
     if reconstruction.num_reg_images() == 0:
         raise InputError(f"the COLMAP model in {model} registers no image")
     for camera in reconstruction.cameras.values():

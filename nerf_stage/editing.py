@@ -195,7 +195,8 @@ def read_render(path: str | os.PathLike) -> WeightRender:
         samples = ((npz.array("sample_pixel", "iu"), npz.array("sample_point", "f"),
                     npz.array("sample_weight", "f")) if "sample_pixel" in npz else None)
         inside = npz.array("inside", "f") if "inside" in npz else None
-        regions = ([region_from_dict(r, str(path)) for r in check_count(npz.json("regions"), str(path))]
+        regions = ([region_from_dict(r, str(path))
+                    for r in check_count(npz.json("regions"), str(path))]
                    if inside is not None else [])
     check_names(names, str(path))
     n = len(names)

@@ -16,7 +16,7 @@ import torch
 from tqdm import tqdm
 
 from palette_core.basis import Basis, basis_terms, check_basis
-from palette_core.errors import InputError
+from palette_core.errors import InputError, first_line
 from palette_core.outputs import atomic_outputs
 
 from .appearance import Appearance
@@ -276,7 +276,7 @@ def read_checkpoint(path: Path) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a damaged or unsafe file
-        raise InputError(f"cannot read checkpoint {path}: {str(exc).splitlines()[0]}") from None
+        raise InputError(f"cannot read checkpoint {path}: {first_line(exc)}") from None
     missing = [key for key in _CHECKPOINT_KEYS if not isinstance(state, dict) or key not in state]
     if missing:
         raise InputError(f"checkpoint {path} lacks {', '.join(missing)}")
@@ -346,4 +346,4 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
         run.occupancy.to(device)
         return run
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise InputError(f"checkpoint {path} is malformed: {str(exc).splitlines()[0]}") from None
+        raise InputError(f"checkpoint {path} is malformed: {first_line(exc)}") from None

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .json_file import read_json
 from .folders import copy_folder, inside
+from .json_file import read_json
 from .outputs import atomic_outputs, check_outdir, check_writable, publish_folder
 from .palette_file import palette_entry, palette_to_hex, parse_palette
 from .selection import LocalEdit, Selection, parse_near

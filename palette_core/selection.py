@@ -29,8 +29,8 @@ import numpy as np
 
 from .basis import Basis, basis_terms, weights_to_rgb
 from .errors import InputError
-from .io import IMAGE_SUFFIXES, open_image
 from .folders import inside
+from .io import IMAGE_SUFFIXES, open_image
 from .stack import video_of
 
 

@@ -5,10 +5,12 @@ a reader meets them."""
 from __future__ import annotations
 
 import io
+import multiprocessing
 import os
 import resource
 import struct
 import sys
+import tempfile
 import traceback
 import zlib
 from pathlib import Path
@@ -26,10 +28,10 @@ def npy_bytes(array: np.ndarray, shape: tuple | None = None, dtype: str | None =
     return out.getvalue() + np.ascontiguousarray(array).tobytes()
 
 
-def write_zip(path: Path, members: dict[str, bytes], claimed: dict[str, int] | None = None,
-              deflate: bool = False) -> None:
-    """A zip file of ``members`` written by hand (ZIP64 sizes always), whose directory claims
-    the uncompressed sizes in ``claimed`` instead of the true ones."""
+def zip_bytes(members: dict[str, bytes], claimed: dict[str, int] | None = None,
+              deflate: bool = False) -> bytes:
+    """A zip file of ``members`` made by hand (ZIP64 sizes always), whose directory claims the
+    uncompressed sizes in ``claimed`` instead of the true ones."""
     claimed = claimed or {}
     body, directory = bytearray(), bytearray()
     for name, data in members.items():
@@ -48,7 +50,7 @@ def write_zip(path: Path, members: dict[str, bytes], claimed: dict[str, int] | N
     end = struct.pack("<IQHHIIQQQQ", 0x06064B50, 44, 45, 45, 0, 0, n, n, len(directory), start)
     locator = struct.pack("<IIQI", 0x07064B50, 0, start + len(directory), 1)
     tail = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFF, 0)
-    Path(path).write_bytes(bytes(body + directory + end + locator + tail))
+    return bytes(body + directory + end + locator + tail)
 
 
 def lying_npz(source: Path, target: Path, key: str, rows: int = 10**12) -> None:
@@ -63,39 +65,50 @@ def lying_npz(source: Path, target: Path, key: str, rows: int = 10**12) -> None:
     members[f"{key}.npy"] = data
     declared = rows * int(np.prod(array.shape[1:], dtype=np.int64)) * array.dtype.itemsize
     header = len(data) - array.nbytes
-    write_zip(target, members, {f"{key}.npy": header + declared})
+    target.write_bytes(zip_bytes(members, {f"{key}.npy": header + declared}))
 
 
 #: Address space a reader may add in ``capped``: far more than any tiny file needs, far less
 #: than a lying header asks for.
 MEMORY_CAP = 1 << 30
+#: Seconds a reader may take on a tiny file before ``capped`` stops it.
+CHILD_SECONDS = 60
 
 
-def capped(call, cap: int = MEMORY_CAP) -> tuple[int, str]:
-    """Run ``call() -> int`` (a command's ``main``) in a forked child whose address space may
-    grow by at most ``cap`` bytes; (its exit code, what it wrote to stderr). A Python
-    exception in the child is exit code 99 with its traceback."""
-    read, write = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the child: never returns
-        code = 99
-        try:
-            os.close(read)
-            os.dup2(write, 2)
-            sys.stderr = os.fdopen(2, "w", closefd=False)
-            used = _address_space()
-            resource.setrlimit(resource.RLIMIT_AS, (used + cap, used + cap))
-            code = call()
-        except BaseException:
-            traceback.print_exc()
-        finally:
-            sys.stderr.flush()
-            os._exit(code if isinstance(code, int) else 98)
-    os.close(write)
-    with os.fdopen(read) as pipe:
-        err = pipe.read()
-    _, status = os.waitpid(pid, 0)
-    return os.waitstatus_to_exitcode(status), err
+def capped(target, *args, cap: int = MEMORY_CAP) -> tuple[int, str]:
+    """Run ``target(*args) -> int`` (a command; module-level, so that it pickles) in a child
+    process whose address space may grow by at most ``cap`` bytes; (its exit code, what it
+    wrote to stderr). A Python exception in the child is exit code 99 with its traceback.
+
+    Children come from a fork server: forking this process, whose thread pools (zarr's event
+    loop, torch's) would not exist in the child, can deadlock it."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([target.__module__])  # imported once, in the server
+    with tempfile.NamedTemporaryFile("w+") as err:
+        child = context.Process(target=_child, args=(err.name, cap, target, args))
+        child.start()
+        child.join(CHILD_SECONDS)
+        if child.is_alive():
+            child.kill()
+            child.join()
+            return -9, f"still running after {CHILD_SECONDS} s\n" + Path(err.name).read_text()
+        return child.exitcode, Path(err.name).read_text()
+
+
+def _child(err: str, cap: int, target, args) -> None:
+    code = 99
+    try:
+        with open(err, "w") as stream:
+            os.dup2(stream.fileno(), 2)
+        sys.stderr = os.fdopen(2, "w", closefd=False)
+        used = _address_space()
+        resource.setrlimit(resource.RLIMIT_AS, (used + cap, used + cap))
+        code = target(*args)
+    except BaseException:
+        traceback.print_exc()
+    finally:
+        sys.stderr.flush()
+        os._exit(code if isinstance(code, int) else 98)
 
 
 def _address_space() -> int:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..basis import Basis, check_basis
-from ..errors import InputError, OutputExists
+from ..errors import InputError, OutputExists, first_line
 from ..io import DEFAULT_MAX_PIXELS
 from ..outputs import check_parent, publish_folder, rename_no_replace
 from .base import FORMAT, WeightStack, check_meta, check_names, video_of
@@ -177,7 +177,7 @@ class LazyWeights(Sequence):
             weights = data[frame] if frame is not None else data[...]
         except Exception as exc:  # noqa: BLE001 - codecs raise many kinds on damaged chunks
             raise InputError(f"{self.path}: weights of {self.names[i]} cannot be read: "
-                             f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                             f"{first_line(exc)}"
                              ) from None
         if not np.isfinite(weights).all():
             raise InputError(f"{self.path}: weights of {self.names[i]} hold NaN or infinity")
@@ -206,7 +206,7 @@ def read_zarr_stack(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> WeightSt
         attrs = dict(store.attrs)
     except Exception as exc:  # noqa: BLE001 - zarr and json raise many kinds
         raise InputError(f"{path} is not a readable Zarr weight stack: "
-                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                         f"{first_line(exc)}"
                          ) from None
     if attrs.get("format") != FORMAT:
         raise InputError(f"{path}: format is {attrs.get('format')!r}, expected {FORMAT!r}")
@@ -242,6 +242,10 @@ def read_zarr_stack(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> WeightSt
             data = store[name]
         except KeyError:
             raise InputError(f"{path}: weights of {source} ({name}) are missing") from None
+        except Exception as exc:  # noqa: BLE001 - zarr and json raise many kinds
+            raise InputError(f"{path}: weights of {source} ({name}) cannot be read: "
+                             f"{first_line(exc)}"
+                             ) from None
         video = data.ndim == 4
         shape = data.shape[1:] if video else data.shape
         pixels = shape[0] * shape[1] if len(shape) == 3 else 0

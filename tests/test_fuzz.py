@@ -1,0 +1,359 @@
+"""A fuzzing harness for every reader of a file we did not write.
+
+Valid small files of each kind are mutated (truncated, bytes flipped or inserted, NPZ
+headers and zip directories that lie, dtypes swapped, JSON values replaced by huge, NaN,
+negative, deeply nested or wrongly typed ones, files replaced by links out of their folder)
+and read in a child process whose address space may grow by at most ``hostile.MEMORY_CAP``.
+The contract: the read succeeds, or it ends in one line on stderr and exit code 2; never a
+traceback, never an allocation beyond the cap, nothing written outside the output folder.
+``make test`` runs a few hundred examples; ``pytest -m slow tests/test_fuzz.py`` a long run.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from palette_core.basis import Basis
+from palette_core.cli import run_cli
+from palette_core.edit_file import read_edits, write_edits
+from palette_core.palette_file import read_palette_json, write_palette_json
+from palette_core.selection import LocalEdit, Selection
+from palette_core.stack import WeightStack, read_stack, write_stack
+
+from .hostile import capped, npy_bytes, zip_bytes
+
+torch = pytest.importorskip("torch")
+pycolmap = pytest.importorskip("pycolmap")
+
+from nerf_stage.data import load_dataset  # noqa: E402
+from nerf_stage.editing import WeightRender, read_render  # noqa: E402
+from nerf_stage.regions import PixelSamples, read_regions  # noqa: E402
+from nerf_stage.run import load_run  # noqa: E402
+from nerf_stage.splats import Splats, read_splats, write_splats  # noqa: E402
+
+K = 4
+PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.9, 0.9, 0.8]])
+
+
+def _stack(rng) -> WeightStack:
+    weights = [rng.dirichlet(np.ones(K), (6, 5)).astype(np.float32) for _ in range(2)]
+    return WeightStack(PALETTE.astype(np.float32), weights, ["a.png", "b.png"])
+
+
+def _photos(folder: Path, rng, n: int = 3, size=(8, 6)) -> list[str]:
+    folder.mkdir(parents=True)
+    names = [f"f{i}.png" for i in range(n)]
+    for name in names:
+        Image.fromarray(rng.integers(0, 256, (*size[::-1], 3), dtype=np.uint8)).save(
+            folder / name)
+    return names
+
+
+def _poses(n: int) -> list[np.ndarray]:
+    poses = []
+    for i in range(n):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.3 * i, 0.0, 2.0]
+        poses.append(pose)
+    return poses
+
+
+def _nerfstudio(folder: Path, rng) -> Path:
+    names = _photos(folder / "images", rng)
+    frames = [{"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
+              for name, pose in zip(names, _poses(len(names)))]
+    (folder / "transforms.json").write_text(json.dumps(
+        {"w": 8, "h": 6, "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "k1": 0.0,
+         "frames": frames}))
+    return folder
+
+
+def _blender(folder: Path, rng) -> Path:
+    names = _photos(folder / "train", rng)
+    frames = [{"file_path": f"train/{name[:-4]}", "transform_matrix": pose.tolist()}
+              for name, pose in zip(names, _poses(len(names)))]
+    (folder / "transforms_train.json").write_text(json.dumps(
+        {"camera_angle_x": 0.8, "frames": frames}))
+    return folder
+
+
+def _colmap(folder: Path, rng, binary: bool) -> Path:
+    names = _photos(folder / "images", rng)
+    model = folder / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text("1 SIMPLE_RADIAL 8 6 8.0 4.0 3.0 0.0\n")
+    (model / "images.txt").write_text("".join(
+        f"{i + 1} 1 0 0 0 {-0.3 * i} 0 2 1 {name}\n\n" for i, name in enumerate(names)))
+    (model / "points3D.txt").write_text("")
+    if binary:
+        reconstruction = pycolmap.Reconstruction(model)
+        for name in ("cameras.txt", "images.txt", "points3D.txt"):
+            (model / name).unlink()
+        reconstruction.write_binary(model)
+    return folder
+
+
+def _render(path: Path, rng) -> Path:
+    weights = rng.dirichlet(np.ones(K), (1, 3, 4)).astype(np.float32)
+    p = 12
+    samples = PixelSamples(np.arange(p, dtype=np.int64), rng.normal(size=(p, 3)).astype(np.float32),
+                           rng.uniform(0, 1, p).astype(np.float32))
+    from nerf_stage.editing import write_render
+    write_render(WeightRender(weights, np.ones((1, 3, 4), np.float32), ["v0"], PALETTE,
+                              Basis.ADDITIVE, 1, np.ones(3), {}, samples), path)
+    return path
+
+
+def _bake(path: Path, rng) -> Path:
+    n = 20
+    q = rng.normal(size=(n, 4))
+    write_splats(Splats(rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+                        rng.uniform(0.05, 0.2, (n, 3)).astype(np.float32),
+                        (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                        rng.uniform(0.3, 0.9, n).astype(np.float32),
+                        rng.dirichlet(np.ones(K), n).astype(np.float32), PALETTE,
+                        Basis.ADDITIVE, 1, np.ones(3), {"cell": 0.1}), path)
+    return path
+
+
+def read_npz_stack(folder: Path) -> None:
+    [np.asarray(w) for w in read_stack(folder / "w.npz").weights]
+
+
+def read_zarr_stack(folder: Path) -> None:
+    [np.asarray(w) for w in read_stack(folder / "w.zarr").weights]
+
+
+def read_edit_file(folder: Path) -> None:
+    from palette_core.recolor import recolor_stack
+
+    stack = read_stack(folder / "w.npz")
+    recolor_stack(stack, stack.palette, folder / "out", force=True,
+                  edits=read_edits(folder / "e.json", stack))
+
+
+def read_bake(folder: Path) -> None:
+    read_splats(folder / "b.splat.npz").colours(PALETTE)
+
+
+def read_weight_render(folder: Path) -> None:
+    read_render(folder / "render.npz").recolor()
+
+
+def read_region_file(folder: Path) -> None:
+    read_regions(folder / "r.json")
+
+
+def read_palette_file(folder: Path) -> None:
+    read_palette_json(folder / "p.json", K)
+
+
+def read_run(folder: Path) -> None:
+    load_run(folder / "run")
+
+
+READERS = {"npz-stack": read_npz_stack, "zarr-stack": read_zarr_stack, "bake": read_bake,
+           "render": read_weight_render, "edits": read_edit_file, "regions": read_region_file,
+           "palette": read_palette_file, "nerfstudio": load_dataset, "blender": load_dataset,
+           "colmap-text": load_dataset, "colmap-binary": load_dataset, "run": read_run}
+KINDS = list(READERS)
+
+
+@pytest.fixture(scope="module")
+def originals(tmp_path_factory, scene_run):
+    """One folder per kind of file we read (``READERS``), each holding a valid small one."""
+    root = tmp_path_factory.mktemp("originals")
+    rng = np.random.default_rng(7)
+    stack = _stack(rng)
+
+    def make_edits(folder):
+        write_stack(stack, folder / "w.npz")
+        masks = folder / "drawn"
+        _photos(masks, rng, 0)
+        for name, w in zip(stack.names, stack.weights):
+            Image.fromarray(rng.integers(0, 256, w.shape[:2], dtype=np.uint8)).save(masks / name)
+        write_edits(folder / "e.json", stack,
+                    [LocalEdit(Selection(mask=masks, feather=1.0), PALETTE[::-1])])
+        shutil.rmtree(masks)
+
+    makers = {
+        "npz-stack": lambda f: write_stack(stack, f / "w.npz"),
+        "zarr-stack": lambda f: write_stack(stack, f / "w.zarr"),
+        "bake": lambda f: _bake(f / "b.splat.npz", rng),
+        "render": lambda f: _render(f / "render.npz", rng),
+        "edits": make_edits,
+        "regions": lambda f: (f / "r.json").write_text(json.dumps({"regions": [
+            {"shape": "box", "centre": [0, 0, 0], "half": [1, 1, 1]},
+            {"shape": "colour", "colour": 1, "threshold": 0.4}]})),
+        "palette": lambda f: write_palette_json(f / "p.json", PALETTE),
+        "nerfstudio": lambda f: _nerfstudio(f, rng),
+        "blender": lambda f: _blender(f, rng),
+        "colmap-text": lambda f: _colmap(f, rng, binary=False),
+        "colmap-binary": lambda f: _colmap(f, rng, binary=True),
+        "run": lambda f: shutil.copytree(scene_run, f / "run"),
+    }
+    for kind, make in makers.items():
+        (root / kind).mkdir()
+        make(root / kind)
+    return root
+
+
+# --- mutations ------------------------------------------------------------------------------
+
+NESTED: list = []
+for _ in range(500):
+    NESTED = [NESTED]
+HOSTILE_VALUES = [10**12, -1, 0, 1e308, float("nan"), float("inf"), "x" * 300, None, True, {},
+                  [], NESTED,
+                  {"shape": "box"}, "../../../etc/hostname", "/etc/hostname"]
+DTYPES = ["<f8", "<f2", ">i8", "<u1", "|b1", "<U7", "|V8", "|O", "<c16", "<M8[s]"]
+
+MUTATION = st.one_of(
+    st.tuples(st.just("truncate"), st.floats(0, 1)),
+    st.tuples(st.just("flip"), st.floats(0, 1), st.integers(1, 255)),
+    st.tuples(st.just("insert"), st.floats(0, 1), st.binary(min_size=1, max_size=12)),
+    st.tuples(st.just("json"), st.integers(0, 10**6), st.sampled_from(HOSTILE_VALUES)),
+    st.tuples(st.just("shape"), st.integers(0, 100), st.sampled_from(
+        [(10**12,), (10**6, 10**6), (), (0,), (3, 10**9, 4), (2**62, 2)])),
+    st.tuples(st.just("dtype"), st.integers(0, 100), st.sampled_from(DTYPES)),
+    st.tuples(st.just("directory"), st.integers(0, 100), st.sampled_from([0, 10**12, 2**63])),
+    st.tuples(st.just("link"), st.integers(0, 10**6)),
+)
+
+
+def mutate(folder: Path, secret: Path, which: int, mutation: tuple) -> None:
+    """Apply ``mutation`` to file number ``which`` (modulo their count) under ``folder``, or
+    link it to ``secret`` outside; a structured mutation that does not fit the file (JSON
+    on an NPZ, a header lie on a file already broken) changes its bytes instead."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    path = files[which % len(files)]
+    kind, *args = mutation
+    if kind == "link":
+        path.unlink()
+        path.symlink_to(secret)
+        return
+    data = path.read_bytes()
+    try:
+        if kind == "json":
+            data = json.dumps(_replaced(json.loads(data), *args)).encode()
+        elif kind in ("shape", "dtype", "directory"):
+            data = _npz_lie(data, kind, *args)
+        else:
+            data = _bytes_changed(data, kind, *args)
+    except Exception:  # noqa: BLE001 - not JSON, not a sound NPZ: change bytes
+        data = _bytes_changed(data, "insert", 0.5, str(args[-1]).encode())
+    path.write_bytes(data)
+
+
+def _bytes_changed(data: bytes, kind: str, where: float, arg=None) -> bytes:
+    at = int(where * len(data))
+    if kind == "truncate":
+        return data[:at]
+    if kind == "flip" and data:
+        at = min(at, len(data) - 1)
+        return data[:at] + bytes([data[at] ^ arg]) + data[at + 1:]
+    return data[:at] + arg + data[at:]
+
+
+def _replaced(value, index: int, new):
+    """``value`` (parsed JSON) with its ``index``-th node (modulo their count) set to ``new``."""
+    places = []
+
+    def walk(node):
+        items = node.items() if isinstance(node, dict) else enumerate(node) \
+            if isinstance(node, list) else ()
+        for key, child in items:
+            places.append((node, key))
+            walk(child)
+
+    walk(value)
+    if not places:
+        return new
+    node, key = places[index % len(places)]
+    node[key] = new
+    return value
+
+
+def _npz_lie(data: bytes, kind: str, index: int, arg) -> bytes:
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        members = {name: z.read(name) for name in z.namelist()}
+    name = sorted(members)[index % len(members)]
+    array = np.load(io.BytesIO(members[name]), allow_pickle=False)
+    claimed = {}
+    if kind == "shape":  # the directory agrees with the header: both lie
+        members[name] = npy_bytes(array, shape=arg)
+        declared = int(np.prod(arg, dtype=np.float64)) * array.dtype.itemsize
+        claimed[name] = min(len(members[name]) - array.nbytes + declared, 2**63 - 1)
+    elif kind == "dtype":
+        members[name] = npy_bytes(array, dtype=arg)
+    else:
+        claimed[name] = arg
+    return zip_bytes(members, claimed)
+
+
+# --- the contract ---------------------------------------------------------------------------
+
+def command(kind: str, folder: Path) -> int:
+    """Read ``folder`` with ``READERS[kind]`` as a command would: exit code 0, or 2 with one
+    line for bad input."""
+    def body() -> int:
+        READERS[kind](folder)
+        return 0
+    return run_cli("reader", body)
+
+
+def listing(folder: Path) -> set[str]:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
+def meets_contract(originals: Path, kind: str, tmp_path_factory, mutations) -> None:
+    work = tmp_path_factory.mktemp("fuzz")
+    secret = work / "secret.png"
+    Image.new("RGB", (6, 8), (1, 2, 3)).save(secret)
+    folder = work / kind
+    shutil.copytree(originals / kind, folder, symlinks=True)
+    for which, mutation in mutations:
+        mutate(folder, secret, which, mutation)
+    before = listing(work)
+    code, err = capped(command, kind, folder)
+    lines = err.strip().splitlines()
+    assert code == 0 or (code == 2 and len(lines) == 1), (kind, mutations, code, err[-3000:])
+    written = {p for p in listing(work) - before if not p.startswith(f"{kind}/out")}
+    assert not written, (kind, mutations, written)
+    shutil.rmtree(work)
+
+
+MUTATIONS = st.lists(st.tuples(st.integers(0, 10**6), MUTATION), min_size=1, max_size=3)
+
+
+def test_valid_originals_are_read(originals):
+    for kind in KINDS:
+        code, err = capped(command, kind, originals / kind)
+        assert code == 0, (kind, err)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@settings(max_examples=25, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(mutations=MUTATIONS)
+def test_mutated_files_meet_the_contract(originals, tmp_path_factory, kind, mutations):
+    meets_contract(originals, kind, tmp_path_factory, mutations)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", KINDS)
+@settings(max_examples=1000, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(mutations=MUTATIONS)
+def test_mutated_files_meet_the_contract_long(originals, tmp_path_factory, kind, mutations):
+    meets_contract(originals, kind, tmp_path_factory, mutations)
