@@ -5,6 +5,7 @@ a reader meets them."""
 from __future__ import annotations
 
 import io
+import json
 import multiprocessing
 import os
 import resource
@@ -16,6 +17,10 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+
+from palette_core.basis import Basis
+from palette_core.stack import WeightStack
 
 
 def npy_bytes(array: np.ndarray, shape: tuple | None = None, dtype: str | None = None) -> bytes:
@@ -120,3 +125,97 @@ def check_refused(code: int, err: str) -> None:
     """The contract for a hostile input: exit code 2 and one line on stderr, no traceback."""
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, (code, err[-3000:])
+
+
+# --- valid small files of each kind -------------------------------------------------------
+
+K = 4
+PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.9, 0.9, 0.8]])
+
+
+def small_stack(rng) -> WeightStack:
+    weights = [rng.dirichlet(np.ones(K), (6, 5)).astype(np.float32) for _ in range(2)]
+    return WeightStack(PALETTE.astype(np.float32), weights, ["a.png", "b.png"])
+
+
+def write_photos(folder: Path, rng, n: int = 3, size=(8, 6)) -> list[str]:
+    folder.mkdir(parents=True)
+    names = [f"f{i}.png" for i in range(n)]
+    for name in names:
+        Image.fromarray(rng.integers(0, 256, (*size[::-1], 3), dtype=np.uint8)).save(
+            folder / name)
+    return names
+
+
+def _poses(n: int) -> list[np.ndarray]:
+    poses = []
+    for i in range(n):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.3 * i, 0.0, 2.0]
+        poses.append(pose)
+    return poses
+
+
+def nerfstudio_capture(folder: Path, rng) -> Path:
+    names = write_photos(folder / "images", rng)
+    frames = [{"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
+              for name, pose in zip(names, _poses(len(names)))]
+    (folder / "transforms.json").write_text(json.dumps(
+        {"w": 8, "h": 6, "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "k1": 0.0,
+         "frames": frames}))
+    return folder
+
+
+def blender_capture(folder: Path, rng) -> Path:
+    names = write_photos(folder / "train", rng)
+    frames = [{"file_path": f"train/{name[:-4]}", "transform_matrix": pose.tolist()}
+              for name, pose in zip(names, _poses(len(names)))]
+    (folder / "transforms_train.json").write_text(json.dumps(
+        {"camera_angle_x": 0.8, "frames": frames}))
+    return folder
+
+
+def colmap_capture(folder: Path, rng, binary: bool) -> Path:
+    names = write_photos(folder / "images", rng)
+    model = folder / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text("1 SIMPLE_RADIAL 8 6 8.0 4.0 3.0 0.0\n")
+    (model / "images.txt").write_text("".join(
+        f"{i + 1} 1 0 0 0 {-0.3 * i} 0 2 1 {name}\n\n" for i, name in enumerate(names)))
+    (model / "points3D.txt").write_text("")
+    if binary:
+        import pycolmap
+
+        reconstruction = pycolmap.Reconstruction(model)
+        for name in ("cameras.txt", "images.txt", "points3D.txt"):
+            (model / name).unlink()
+        reconstruction.write_binary(model)
+    return folder
+
+
+def small_render(path: Path, rng) -> Path:
+    """A weight render of one 4x3 view with a sample behind each pixel."""
+    from nerf_stage.editing import WeightRender, write_render
+    from nerf_stage.regions import PixelSamples
+
+    weights = rng.dirichlet(np.ones(K), (1, 3, 4)).astype(np.float32)
+    samples = PixelSamples(np.arange(12, dtype=np.int64),
+                           rng.normal(size=(12, 3)).astype(np.float32),
+                           rng.uniform(0, 1, 12).astype(np.float32))
+    write_render(WeightRender(weights, np.ones((1, 3, 4), np.float32), ["v0"], PALETTE,
+                              Basis.ADDITIVE, 1, np.ones(3), {}, samples), path)
+    return path
+
+
+def small_bake(path: Path, rng) -> Path:
+    from nerf_stage.splats import Splats, write_splats
+
+    n = 20
+    q = rng.normal(size=(n, 4))
+    write_splats(Splats(rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+                        rng.uniform(0.05, 0.2, (n, 3)).astype(np.float32),
+                        (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                        rng.uniform(0.3, 0.9, n).astype(np.float32),
+                        rng.dirichlet(np.ones(K), n).astype(np.float32), PALETTE,
+                        Basis.ADDITIVE, 1, np.ones(3), {"cell": 0.1}), path)
+    return path

@@ -23,107 +23,35 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from palette_core.basis import Basis
 from palette_core.cli import run_cli
 from palette_core.edit_file import read_edits, write_edits
 from palette_core.palette_file import read_palette_json, write_palette_json
 from palette_core.selection import LocalEdit, Selection
-from palette_core.stack import WeightStack, read_stack, write_stack
+from palette_core.stack import read_stack, write_stack
 
-from .hostile import capped, npy_bytes, zip_bytes
+from .hostile import (
+    PALETTE,
+    K,
+    blender_capture,
+    capped,
+    colmap_capture,
+    nerfstudio_capture,
+    npy_bytes,
+    small_bake,
+    small_render,
+    small_stack,
+    write_photos,
+    zip_bytes,
+)
 
 torch = pytest.importorskip("torch")
 pycolmap = pytest.importorskip("pycolmap")
 
 from nerf_stage.data import load_dataset  # noqa: E402
-from nerf_stage.editing import WeightRender, read_render  # noqa: E402
-from nerf_stage.regions import PixelSamples, read_regions  # noqa: E402
+from nerf_stage.editing import read_render  # noqa: E402
+from nerf_stage.regions import read_regions  # noqa: E402
 from nerf_stage.run import load_run  # noqa: E402
-from nerf_stage.splats import Splats, read_splats, write_splats  # noqa: E402
-
-K = 4
-PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.9, 0.9, 0.8]])
-
-
-def _stack(rng) -> WeightStack:
-    weights = [rng.dirichlet(np.ones(K), (6, 5)).astype(np.float32) for _ in range(2)]
-    return WeightStack(PALETTE.astype(np.float32), weights, ["a.png", "b.png"])
-
-
-def _photos(folder: Path, rng, n: int = 3, size=(8, 6)) -> list[str]:
-    folder.mkdir(parents=True)
-    names = [f"f{i}.png" for i in range(n)]
-    for name in names:
-        Image.fromarray(rng.integers(0, 256, (*size[::-1], 3), dtype=np.uint8)).save(
-            folder / name)
-    return names
-
-
-def _poses(n: int) -> list[np.ndarray]:
-    poses = []
-    for i in range(n):
-        pose = np.eye(4)
-        pose[:3, 3] = [0.3 * i, 0.0, 2.0]
-        poses.append(pose)
-    return poses
-
-
-def _nerfstudio(folder: Path, rng) -> Path:
-    names = _photos(folder / "images", rng)
-    frames = [{"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
-              for name, pose in zip(names, _poses(len(names)))]
-    (folder / "transforms.json").write_text(json.dumps(
-        {"w": 8, "h": 6, "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "k1": 0.0,
-         "frames": frames}))
-    return folder
-
-
-def _blender(folder: Path, rng) -> Path:
-    names = _photos(folder / "train", rng)
-    frames = [{"file_path": f"train/{name[:-4]}", "transform_matrix": pose.tolist()}
-              for name, pose in zip(names, _poses(len(names)))]
-    (folder / "transforms_train.json").write_text(json.dumps(
-        {"camera_angle_x": 0.8, "frames": frames}))
-    return folder
-
-
-def _colmap(folder: Path, rng, binary: bool) -> Path:
-    names = _photos(folder / "images", rng)
-    model = folder / "sparse" / "0"
-    model.mkdir(parents=True)
-    (model / "cameras.txt").write_text("1 SIMPLE_RADIAL 8 6 8.0 4.0 3.0 0.0\n")
-    (model / "images.txt").write_text("".join(
-        f"{i + 1} 1 0 0 0 {-0.3 * i} 0 2 1 {name}\n\n" for i, name in enumerate(names)))
-    (model / "points3D.txt").write_text("")
-    if binary:
-        reconstruction = pycolmap.Reconstruction(model)
-        for name in ("cameras.txt", "images.txt", "points3D.txt"):
-            (model / name).unlink()
-        reconstruction.write_binary(model)
-    return folder
-
-
-def _render(path: Path, rng) -> Path:
-    weights = rng.dirichlet(np.ones(K), (1, 3, 4)).astype(np.float32)
-    p = 12
-    samples = PixelSamples(np.arange(p, dtype=np.int64), rng.normal(size=(p, 3)).astype(np.float32),
-                           rng.uniform(0, 1, p).astype(np.float32))
-    from nerf_stage.editing import write_render
-    write_render(WeightRender(weights, np.ones((1, 3, 4), np.float32), ["v0"], PALETTE,
-                              Basis.ADDITIVE, 1, np.ones(3), {}, samples), path)
-    return path
-
-
-def _bake(path: Path, rng) -> Path:
-    n = 20
-    q = rng.normal(size=(n, 4))
-    write_splats(Splats(rng.uniform(-1, 1, (n, 3)).astype(np.float32),
-                        rng.uniform(0.05, 0.2, (n, 3)).astype(np.float32),
-                        (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
-                        rng.uniform(0.3, 0.9, n).astype(np.float32),
-                        rng.dirichlet(np.ones(K), n).astype(np.float32), PALETTE,
-                        Basis.ADDITIVE, 1, np.ones(3), {"cell": 0.1}), path)
-    return path
+from nerf_stage.splats import read_splats  # noqa: E402
 
 
 def read_npz_stack(folder: Path) -> None:
@@ -174,12 +102,12 @@ def originals(tmp_path_factory, scene_run):
     """One folder per kind of file we read (``READERS``), each holding a valid small one."""
     root = tmp_path_factory.mktemp("originals")
     rng = np.random.default_rng(7)
-    stack = _stack(rng)
+    stack = small_stack(rng)
 
     def make_edits(folder):
         write_stack(stack, folder / "w.npz")
         masks = folder / "drawn"
-        _photos(masks, rng, 0)
+        write_photos(masks, rng, 0)
         for name, w in zip(stack.names, stack.weights):
             Image.fromarray(rng.integers(0, 256, w.shape[:2], dtype=np.uint8)).save(masks / name)
         write_edits(folder / "e.json", stack,
@@ -189,17 +117,17 @@ def originals(tmp_path_factory, scene_run):
     makers = {
         "npz-stack": lambda f: write_stack(stack, f / "w.npz"),
         "zarr-stack": lambda f: write_stack(stack, f / "w.zarr"),
-        "bake": lambda f: _bake(f / "b.splat.npz", rng),
-        "render": lambda f: _render(f / "render.npz", rng),
+        "bake": lambda f: small_bake(f / "b.splat.npz", rng),
+        "render": lambda f: small_render(f / "render.npz", rng),
         "edits": make_edits,
         "regions": lambda f: (f / "r.json").write_text(json.dumps({"regions": [
             {"shape": "box", "centre": [0, 0, 0], "half": [1, 1, 1]},
             {"shape": "colour", "colour": 1, "threshold": 0.4}]})),
         "palette": lambda f: write_palette_json(f / "p.json", PALETTE),
-        "nerfstudio": lambda f: _nerfstudio(f, rng),
-        "blender": lambda f: _blender(f, rng),
-        "colmap-text": lambda f: _colmap(f, rng, binary=False),
-        "colmap-binary": lambda f: _colmap(f, rng, binary=True),
+        "nerfstudio": lambda f: nerfstudio_capture(f, rng),
+        "blender": lambda f: blender_capture(f, rng),
+        "colmap-text": lambda f: colmap_capture(f, rng, binary=False),
+        "colmap-binary": lambda f: colmap_capture(f, rng, binary=True),
         "run": lambda f: shutil.copytree(scene_run, f / "run"),
     }
     for kind, make in makers.items():

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -167,12 +168,15 @@ class NpzReader:
                                      "but holds another size")
             with self.zip.open(info) as f:
                 return np.lib.format.read_array(f, allow_pickle=False)
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        except (OSError, ValueError, EOFError, RuntimeError, zipfile.BadZipFile,
+                zlib.error) as exc:
             raise InputError(f"{self.path}: key {key!r} cannot be read: {exc}") from None
 
     def _check_sizes(self, key: str, info: zipfile.ZipInfo) -> None:
         """InputError unless member ``key`` may hold the size its directory entry states."""
         ratio = {zipfile.ZIP_STORED: 1, zipfile.ZIP_DEFLATED: MAX_DEFLATE_RATIO}
+        if info.flag_bits & 0x1:
+            raise InputError(f"{self.path}: key {key!r} is encrypted (NPZ files are not)")
         if info.compress_type not in ratio:
             raise InputError(f"{self.path}: key {key!r} is compressed with method "
                              f"{info.compress_type} (NPZ files are stored or deflated)")
