@@ -5,9 +5,9 @@ world-to-camera poses with the camera looking down +z, y down. A capture stores
 camera-to-world poses with OpenGL axes (``cameras``) in a normalised frame: centred on the
 cameras, the cameras' mean up vector turned to +y, the farthest camera at distance 1
 (nerfstudio's "poses" centring and "up" orientation). ``data`` reads a model's folder
-directly as a capture; ``sfm`` writes one as a nerfstudio folder. Distortion is not modelled
-by the renderer: a camera whose distortion moves a pixel by more than ``MAX_DISTORTION``
-must be undistorted first (``nerf-stage poses``). docs/capture.md.
+directly as a capture, its photos undistorted when read (``distortion``); ``sfm`` writes one
+as a nerfstudio folder of pinhole cameras, undistorting photos whose lens moves a pixel by
+more than ``MAX_DISTORTION``. docs/capture.md.
 
 pycolmap is an optional dependency (``pip install 'palette-nerf-toolkit[poses]'``).
 """
@@ -22,10 +22,11 @@ import numpy as np
 from palette_core.errors import InputError, first_line
 
 from .cameras import Intrinsics, checked_camera
+from .distortion import Distortion
 
 #: Where a model may sit in a folder, in the order looked at (COLMAP's own layout first).
 MODEL_FOLDERS = ("sparse/0", "sparse", ".")
-#: Pixels that a camera's distortion may move an image corner before it must be undistorted.
+#: Pixels that a camera's distortion may move an image corner before ``sfm`` undistorts.
 MAX_DISTORTION = 0.1
 #: COLMAP's camera axes to OpenGL's: x right, y down, z forward -> x right, y up, z back.
 _FLIP = np.diag([1.0, -1.0, -1.0])
@@ -96,32 +97,54 @@ def distortion(camera) -> float:
     return float(np.abs(pinhole - border).max())
 
 
-def pinhole(camera, source: str) -> Intrinsics:
-    """``camera`` as a pinhole camera.
+#: COLMAP camera models we read: name -> (the params' order, our distortion model). f is a
+#: shared focal length; k and p name the coefficients of ``distortion.Distortion``.
+CAMERA_MODELS = {
+    "SIMPLE_PINHOLE": (("f", "cx", "cy"), "opencv"),
+    "PINHOLE": (("fx", "fy", "cx", "cy"), "opencv"),
+    "SIMPLE_RADIAL": (("f", "cx", "cy", "k1"), "opencv"),
+    "RADIAL": (("f", "cx", "cy", "k1", "k2"), "opencv"),
+    "OPENCV": (("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"), "opencv"),
+    "FULL_OPENCV": (("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4_rational",
+                     "k5_rational", "k6_rational"), "opencv"),
+    "SIMPLE_RADIAL_FISHEYE": (("f", "cx", "cy", "k1"), "fisheye"),
+    "RADIAL_FISHEYE": (("f", "cx", "cy", "k1", "k2"), "fisheye"),
+    "OPENCV_FISHEYE": (("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"), "fisheye"),
+}
+
+
+def camera_lens(camera, source: str) -> tuple[Intrinsics, Distortion]:
+    """``camera`` as a pinhole camera and its lens's distortion (``CAMERA_MODELS``).
 
     Raises
     ------
     InputError
-        If it is not a perspective camera, or its distortion moves a pixel by more than
-        ``MAX_DISTORTION`` (naming ``source`` and how to undistort).
+        For a model we cannot undistort (FOV, thin-prism fisheyes, FULL_OPENCV's rational
+        terms), naming ``source``.
     """
-    if not camera.is_perspective():
-        raise InputError(f"{source}: camera model {camera.model_name} is not a perspective "
-                         "camera")
-    moved = distortion(camera)
-    if moved > MAX_DISTORTION:
-        raise InputError(f"{source}: camera model {camera.model_name} distorts the image by up "
-                         f"to {moved:.1f} pixels; undistort it with nerf-stage poses "
-                         f"{source} -o CAPTURE")
-    return checked_camera(f"{source}: camera {camera.camera_id}", camera.width, camera.height,
-                          float(camera.focal_length_x), float(camera.focal_length_y),
-                          float(camera.principal_point_x), float(camera.principal_point_y))
+    where = f"{source}: camera {camera.camera_id}"
+    if camera.model_name not in CAMERA_MODELS:
+        raise InputError(f"{where}: camera model {camera.model_name} is not supported (read: "
+                         f"{', '.join(CAMERA_MODELS)}); undistort its photos first, e.g. with "
+                         "COLMAP's image_undistorter")
+    names, model = CAMERA_MODELS[camera.model_name]
+    values = dict(zip(names, map(float, camera.params)))
+    if any(values.get(f"k{i}_rational") for i in (4, 5, 6)):
+        raise InputError(f"{where}: FULL_OPENCV's rational terms k4, k5, k6 are not supported")
+    fx, fy = values.get("fx", values.get("f")), values.get("fy", values.get("f"))
+    intrinsics = checked_camera(where, camera.width, camera.height, fx, fy, values["cx"],
+                                values["cy"])
+    k = tuple(values.get(f"k{i}", 0.0) for i in range(1, 5))
+    try:
+        return intrinsics, Distortion(model, k, (values.get("p1", 0.0), values.get("p2", 0.0)))
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
 
 
 def model_frames(reconstruction, source: str):
     """The registered images of ``reconstruction`` by name: (N,) names, (N, 4, 4)
-    camera-to-world poses (OpenGL axes, normalised frame: ``normalised``) and N
-    pinhole cameras (``pinhole``)."""
+    camera-to-world poses (OpenGL axes, normalised frame: ``normalised``), N pinhole
+    cameras and their N distortions (``camera_lens``)."""
     images = sorted(reconstruction.images.values(), key=lambda image: image.name)
     images = [image for image in images if image.has_pose]
     poses = []
@@ -132,8 +155,8 @@ def model_frames(reconstruction, source: str):
         pose[:3, 3] = -world_to_camera[:, :3].T @ world_to_camera[:, 3]
         poses.append(pose)
     poses = np.array(poses)
-    cameras = [pinhole(image.camera, source) for image in images]
-    return [image.name for image in images], normalised(poses), cameras
+    cameras, lenses = zip(*(camera_lens(image.camera, source) for image in images))
+    return [image.name for image in images], normalised(poses), list(cameras), list(lenses)
 
 
 def normalised(poses: np.ndarray) -> np.ndarray:

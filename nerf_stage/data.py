@@ -8,14 +8,17 @@ Three layouts are read:
   ``transform_matrix`` camera-to-world, OpenGL axes), as ``nerf-stage simulate``
   writes them.
 - nerfstudio: one ``transforms.json`` with ``fl_x``, ``fl_y``, ``cx``, ``cy``,
-  ``w``, ``h`` and ``frames[]``, where a frame may carry its own ``fl_x``, ``fl_y``,
-  ``cx``, ``cy`` (pinhole cameras that differ per frame, of one image size); splits come
+  ``w``, ``h``, a lens (``camera_model`` OPENCV or OPENCV_FISHEYE with ``k1``-``k4``,
+  ``p1``, ``p2``) and ``frames[]``, where a frame may carry its own camera and lens (of one
+  image size); splits come
   from ``train_filenames``, ``val_filenames`` and ``test_filenames`` where the file lists
   them, else every eighth frame is held out for testing (the LLFF convention) and there
   is no validation split.
 - COLMAP: a model (``sparse/0``, text or binary; ``colmap``) with its photos in ``images/``,
-  read as a nerfstudio capture of pinhole cameras in a normalised frame (every eighth
-  photo held out likewise); distorted cameras are undistorted by ``nerf-stage poses``.
+  read as a nerfstudio capture in a normalised frame (every eighth photo held out likewise).
+
+Photos taken through a distorting lens are undistorted once, when they are read, into
+pinhole images (``distortion``); a lens model we cannot undistort is refused.
 
 A frame with ``"off_ring": true`` (Blender or nerfstudio) is a test view away from the
 training cameras (``nerf-stage simulate --off-ring``), scored apart (``Dataset.off_ring``).
@@ -32,7 +35,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -43,11 +46,31 @@ from palette_core.stack import WeightStack
 
 from .cameras import Intrinsics, checked_camera, focal_length
 from .colmap import find_model, model_frames, read_model
+from .distortion import Distortion, undistort, undistorted_camera
 
 SPLITS = ("train", "val", "test")
 NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
 MAX_DOWNSCALE = 64
-_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")  # a nerfstudio frame may override
+#: What a nerfstudio frame may set for itself (else the file's top level says it).
+_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model", "k1", "k2", "k3", "k4",
+                "p1", "p2")
+#: nerfstudio's camera models -> our distortion models (``distortion.MODELS``).
+NERFSTUDIO_MODELS = {"OPENCV": "opencv", "PINHOLE": "opencv", "SIMPLE_PINHOLE": "opencv",
+                     "OPENCV_FISHEYE": "fisheye"}
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A frame's ``camera`` through ``distortion``, undistorted into pinhole ``target`` (all
+    at the files' size; ``distortion``)."""
+
+    camera: Intrinsics
+    distortion: Distortion
+    target: Intrinsics
+
+    def undistort(self, image: np.ndarray) -> np.ndarray:
+        """(H, W, C) image or weights of the file -> float32, of ``target``."""
+        return undistort(image, self.camera, self.distortion, self.target)
 
 
 @dataclass
@@ -80,6 +103,9 @@ class Dataset:
     off_ring : (N,) bool
         Test frames away from the cameras that training saw (a frame's ``"off_ring":
         true``, which ``nerf-stage simulate --off-ring`` writes): scored apart.
+    lenses : list of Lens or None
+        Each frame's lens at the files' size, where a lens distorts: the images (and a
+        stack's weights, ``join_weights``) are undistorted through it.
     """
 
     root: Path
@@ -95,6 +121,7 @@ class Dataset:
     downscale: int = 1
     frame_intrinsics: list[Intrinsics] | None = None
     off_ring: np.ndarray | None = None
+    lenses: list[Lens] | None = None
 
     def __post_init__(self):
         if self.off_ring is None:
@@ -140,12 +167,14 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
         focal = focal_length(width, angle)
         frame_intrinsics = [checked_camera(str(root / "transforms_train.json"), width, height,
                                            focal, focal, width / 2, height / 2)]
+        distortions = [Distortion()]
     elif (root / "transforms.json").is_file():
         layout = "nerfstudio"
-        names, splits, poses, frame_intrinsics, off_ring = _read_nerfstudio(root, frames_outside)
+        names, splits, poses, frame_intrinsics, distortions, off_ring = _read_nerfstudio(
+            root, frames_outside)
     elif (model := find_model(root)) is not None:
         layout = "colmap"
-        names, poses, frame_intrinsics = model_frames(read_model(model), str(root))
+        names, poses, frame_intrinsics, distortions = model_frames(read_model(model), str(root))
         names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
                  for name in names]
         splits, off_ring = _holdout(len(names)), None
@@ -154,13 +183,15 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
                          "transforms.json (nerfstudio layout) nor a COLMAP model (sparse/0): "
                          "make one with nerf-stage poses PHOTOS -o DIR or nerf-stage simulate "
                          "SCENE DIR, or capture one")
+    lenses = _lenses(frame_intrinsics, distortions, len(names), root)
+    frame_intrinsics = [lens.target for lens in lenses] if lenses else frame_intrinsics
     intrinsics = frame_intrinsics[0]
     if all(camera == intrinsics for camera in frame_intrinsics):
         frame_intrinsics = None  # one camera for all frames
     if min(intrinsics.width, intrinsics.height) < downscale:
         raise InputError(f"{root}: images of {intrinsics.width}x{intrinsics.height} cannot be "
                          f"downscaled {downscale} times")
-    rgba = _read_frames(root, names, intrinsics, downscale)
+    rgba = _read_frames(root, names, intrinsics, downscale, lenses)
     intrinsics = intrinsics.downscaled(downscale)
     if frame_intrinsics is not None:
         frame_intrinsics = [camera.downscaled(downscale) for camera in frame_intrinsics]
@@ -168,7 +199,28 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
                    alpha, background, layout, frames_outside, downscale, frame_intrinsics,
-                   off_ring)
+                   off_ring, lenses)
+
+
+def _lenses(cameras: list[Intrinsics], distortions: list[Distortion], n: int,
+            root: Path) -> list[Lens] | None:
+    """Each frame's ``Lens`` (one camera and distortion may stand for all), or None when
+    no lens distorts."""
+    if all(d.none for d in distortions):
+        return None
+    cameras = cameras * n if len(cameras) == 1 else cameras
+    distortions = distortions * n if len(distortions) == 1 else distortions
+    made: dict[tuple, Lens] = {}
+    lenses = []
+    for camera, distortion in zip(cameras, distortions):
+        key = (astuple(camera), distortion)
+        if key not in made:
+            try:
+                made[key] = Lens(camera, distortion, undistorted_camera(camera, distortion))
+            except InputError as exc:
+                raise InputError(f"{root}: {exc}") from None
+        lenses.append(made[key])
+    return lenses
 
 
 def check_downscale(factor) -> int:
@@ -234,13 +286,26 @@ def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> 
     if missing:
         raise InputError(f"{split} frames without weights in the stack: {_listing(missing)}")
     size = (dataset.intrinsics.height, dataset.intrinsics.width)
-    weights = [np.asarray(stack.weights[by_name[f]], np.float32) for f in frames]
-    weights = [w if w.shape[:2] == size else block_mean(w, dataset.downscale) for w in weights]
+    weights = [_frame_weights(dataset, i, np.asarray(stack.weights[by_name[f]], np.float32))
+               for i, f in zip(dataset.indices(split), frames)]
     wrong = [f for f, w in zip(frames, weights) if w.shape[:2] != size]
     if wrong:
         raise InputError(f"weights of {_listing(wrong)} are not {size[1]}x{size[0]} "
                          "like the images")
     return np.stack(weights).astype(np.float32)
+
+
+def _frame_weights(dataset: Dataset, i: int, weights: np.ndarray) -> np.ndarray:
+    """(h, w, M) weights of frame ``i``'s image file, undistorted through its lens and
+    downscaled like the image; weights of another size as they are (``join_weights``
+    names them)."""
+    camera = dataset.camera(i)
+    if weights.shape[:2] == (camera.height, camera.width):
+        return weights  # made from the frames as the dataset has them
+    if dataset.lenses is not None and weights.shape[:2] == (dataset.lenses[i].camera.height,
+                                                            dataset.lenses[i].camera.width):
+        weights = dataset.lenses[i].undistort(weights)
+    return block_mean(weights, dataset.downscale)
 
 
 def _same_image(frame: str, name: str) -> bool:
@@ -339,7 +404,7 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
     names, poses, off_ring = _frames(data, path, "", frames_outside)
     if not names:
         raise InputError(f"{path} lists no frames")
-    cameras = []
+    cameras, lenses = [], []
     for i, frame in enumerate(data["frames"]):
         own = {key: frame[key] for key in _CAMERA_KEYS if key in frame}
         fields, where = {**data, **own}, f"{path}: frames[{i}]" if own else path
@@ -347,12 +412,29 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
             str(where), _field(fields, "w", where, int), _field(fields, "h", where, int),
             _field(fields, "fl_x", where), _field(fields, "fl_y", where),
             _field(fields, "cx", where), _field(fields, "cy", where)))
+        lenses.append(_nerfstudio_lens(fields, where))
     sizes = {(camera.width, camera.height) for camera in cameras}
     if len(sizes) > 1:
         listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
         raise InputError(f"{path}: frames of different image sizes ({listed}) are not supported")
-    return (names, _nerfstudio_splits(data, names, path), np.array(poses), cameras,
+    return (names, _nerfstudio_splits(data, names, path), np.array(poses), cameras, lenses,
             np.array(off_ring))
+
+
+def _nerfstudio_lens(fields: dict, where) -> Distortion:
+    """The distortion of a nerfstudio camera (``camera_model``, ``k1``-``k4``, ``p1``,
+    ``p2``; OPENCV when no model is named, as nerfstudio reads it)."""
+    name = fields.get("camera_model", "OPENCV")
+    if name not in NERFSTUDIO_MODELS:
+        raise InputError(f"{where}: camera_model {name!r} is not supported (read: "
+                         f"{', '.join(NERFSTUDIO_MODELS)}); undistort the photos first")
+    coefficients = {key: fields.get(key, 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
+    try:
+        return Distortion(NERFSTUDIO_MODELS[name],
+                          tuple(coefficients[f"k{i}"] for i in range(1, 5)),
+                          (coefficients["p1"], coefficients["p2"]))
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from None
 
 
 def _nerfstudio_splits(data: dict, names: list[str], path: Path) -> list[str]:
@@ -383,10 +465,12 @@ def _holdout(n: int) -> list[str]:
             for i in range(n)]
 
 
-def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: int) -> np.ndarray:
-    """(N, H / n, W / n, 4) float32 RGBA in [0, 1] of the frames, ``downscale`` n times
-    smaller (``block_mean``; images without alpha are opaque). Each frame is read as 8-bit
-    and made small before the next, so full-size photos never sit in memory as floats.
+def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: int,
+                 lenses: list[Lens] | None) -> np.ndarray:
+    """(N, H / n, W / n, 4) float32 RGBA in [0, 1] of the frames, undistorted through their
+    ``lenses`` and ``downscale`` n times smaller (``block_mean``; images without alpha are
+    opaque). Each frame is read as 8-bit and made small before the next, so full-size photos
+    never sit in memory together as floats.
 
     Raises
     ------
@@ -394,7 +478,7 @@ def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: in
         If a frame cannot be read or is not the camera's size (all such frames named).
     """
     frames, wrong = [], []
-    for name in names:
+    for i, name in enumerate(names):
         with open_image(root / name) as im:
             try:
                 rgba = np.asarray(im.convert("RGBA"))
@@ -403,7 +487,10 @@ def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: in
         if rgba.shape[:2] != (camera.height, camera.width):
             wrong.append(name)
         elif not wrong:
-            frames.append(block_mean(rgba.astype(np.float32) / 255.0, downscale, rgba=True))
+            rgba = rgba.astype(np.float32) / 255.0
+            if lenses is not None:
+                rgba = lenses[i].undistort(rgba)
+            frames.append(block_mean(rgba, downscale, rgba=True))
     if wrong:
         raise InputError(f"{root}: images {_listing(wrong)} are not "
                          f"{camera.width}x{camera.height} as the cameras say")

@@ -234,7 +234,7 @@ def _undistort(pycolmap, model: Path, photos: Path, names: list[str], work: Path
 
 def _write_transforms(path: Path, reconstruction, source: str) -> None:
     """``transforms.json`` (nerfstudio layout, a camera per frame) of ``reconstruction``."""
-    names, poses, cameras = model_frames(reconstruction, source)
+    names, poses, cameras, _ = model_frames(reconstruction, source)  # undistorted: pinhole
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) > 1:
         raise InputError(f"{source}: the model's cameras have different image sizes")

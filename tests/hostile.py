@@ -156,13 +156,16 @@ def _poses(n: int) -> list[np.ndarray]:
     return poses
 
 
-def nerfstudio_capture(folder: Path, rng) -> Path:
-    names = write_photos(folder / "images", rng)
+def nerfstudio_capture(folder: Path, rng, lens: dict | None = None, size=(8, 6)) -> Path:
+    """A nerfstudio capture of three random photos of ``size``, the camera's focal length
+    its width, its lens ``lens`` (nerfstudio's keys) or none."""
+    w, h = size
+    names = write_photos(folder / "images", rng, size=size)
     frames = [{"file_path": f"images/{name}", "transform_matrix": pose.tolist()}
               for name, pose in zip(names, _poses(len(names)))]
     (folder / "transforms.json").write_text(json.dumps(
-        {"w": 8, "h": 6, "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "k1": 0.0,
-         "frames": frames}))
+        {"w": w, "h": h, "fl_x": float(w), "fl_y": float(w), "cx": w / 2, "cy": h / 2,
+         **(lens or {"k1": 0.0}), "frames": frames}))
     return folder
 
 
@@ -175,11 +178,14 @@ def blender_capture(folder: Path, rng) -> Path:
     return folder
 
 
-def colmap_capture(folder: Path, rng, binary: bool) -> Path:
-    names = write_photos(folder / "images", rng)
+def colmap_capture(folder: Path, rng, binary: bool, camera: str = "SIMPLE_RADIAL 8 6 8.0 4.0 "
+                   "3.0 0.0", size=(8, 6)) -> Path:
+    """A COLMAP capture (text or ``binary`` model) of three random photos of ``size`` taken
+    by ``camera`` (a line of COLMAP's cameras.txt after the camera id)."""
+    names = write_photos(folder / "images", rng, size=size)
     model = folder / "sparse" / "0"
     model.mkdir(parents=True)
-    (model / "cameras.txt").write_text("1 SIMPLE_RADIAL 8 6 8.0 4.0 3.0 0.0\n")
+    (model / "cameras.txt").write_text(f"1 {camera}\n")
     (model / "images.txt").write_text("".join(
         f"{i + 1} 1 0 0 0 {-0.3 * i} 0 2 1 {name}\n\n" for i, name in enumerate(names)))
     (model / "points3D.txt").write_text("")
