@@ -262,7 +262,7 @@ def _train(args) -> int:
 
     from .data import load_dataset
     from .run import CHECKPOINT
-    from .trainer import train
+    from .trainer import peak_memory, train
 
     config = config_from_args(TrainConfig, args)
     data = Path(args.data).resolve()
@@ -279,7 +279,8 @@ def _train(args) -> int:
                 force=args.force, weights_path=str(weights.resolve()))
     log = run.record.log
     print(f"trained {config.backbone} ({config.strategy}) for {log[-1]['iteration']} "
-          f"iterations in {log[-1]['seconds']:.0f} s, last batch PSNR {log[-1]['psnr']:.2f} dB")
+          f"iterations in {log[-1]['seconds']:.0f} s, last batch PSNR {log[-1]['psnr']:.2f} dB, "
+          f"peak memory {peak_memory(run.occupancy.extent.device)}")
     print(f"wrote {rundir / CHECKPOINT}; next: {PROG} render {rundir} -o DIR")
     return 0
 

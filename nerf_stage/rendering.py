@@ -26,6 +26,10 @@ from .occupancy import OccupancyGrid
 
 TERMINATION = 1e-4  # samples behind less transmittance skip the colour part
 SEGMENT = 32  # samples a ray marched at a time, between checks for termination (rendering)
+#: Most (ray, sample) slots a training batch marches at a time: a batch whose longest ray
+#: would need more is marched in segments, so that one long ray cannot make every ray of
+#: its batch hold dense tensors of its length (memory bounded by design).
+TRAIN_SLOTS = 1 << 21
 
 
 def box_intersection(origins: torch.Tensor, directions: torch.Tensor, extent: torch.Tensor):
@@ -168,9 +172,10 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     fallen below ``TERMINATION`` is not marched further (early ray termination), and
     stepped rays skip empty space again after each segment (past a floater to the
     surface behind it); with gradients, in one pass (each pass of a grid backbone
-    costs a backward over its whole grids). With ``sampling.sky`` (an unbounded scene whose
-    training pixels are all opaque), each ray that light still reaches ends in an opaque
-    sample at infinity (``_sky_samples``).
+    costs a backward over its whole grids) unless the batch's longest ray would make it
+    hold more than ``TRAIN_SLOTS`` samples, then in segments as in rendering. With
+    ``sampling.sky`` (an unbounded scene whose training pixels are all opaque), each ray
+    that light still reaches ends in an opaque sample at infinity (``_sky_samples``).
 
     Parameters
     ----------
@@ -191,7 +196,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     first = torch.zeros_like(near)  # each ray's next sample, counted in steps from near
     alive = torch.arange(len(near), device=near.device)
     parts = []
-    segment = n_samples if torch.is_grad_enabled() else min(SEGMENT, n_samples)
+    segment = (min(n_samples, max(SEGMENT, TRAIN_SLOTS // max(len(near), 1)))
+               if torch.is_grad_enabled() else min(SEGMENT, n_samples))
     offsets = torch.arange(segment, device=near.device, dtype=near.dtype)
     while True:
         enter, step, leave = near[alive, None], deltas[alive, None], far[alive, None]

@@ -89,6 +89,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     rundir = Path(rundir)
     check_rundir(rundir, resume, force)
     weights = join_weights(dataset, stack, "train")  # (n, H, W, M)
+    stack = replace(stack, weights=[])  # the stack's own maps (full-size) can be freed now
     train_ids = dataset.indices("train")
     if stack.basis == Basis.ADDITIVE:
         weights = weights * dataset.alpha[train_ids, ..., None]
@@ -99,6 +100,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
            _scene_box(config, dataset, stack, train_ids, weights, device, progress))
     run = _new_run(config, box, dataset, stack, train_ids, device)
     run.record.weights = weights_path
+    _check_fits(weights, config.supersampling, device)
     rays = _ray_bank(run, dataset, train_ids, weights, device)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     optimiser_states = []
@@ -133,6 +135,17 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.total_iters:
             save_checkpoint(run, rundir / CHECKPOINT, optimisers, generator)
     return run
+
+
+def peak_memory(device: torch.device) -> str:
+    """What this process has held at most: its peak resident memory, and on CUDA the
+    device's peak allocation (``torch.cuda.max_memory_allocated``)."""
+    import resource
+
+    text = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GB resident"
+    if device.type == "cuda":
+        text += f", {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GB on {device}"
+    return text
 
 
 def _step(run: Run, optimisers: list, rays: dict, terms, background, generator, it: int,
@@ -266,6 +279,33 @@ def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
             "alpha": flat(dataset.alpha[train_ids, ..., None])[:, 0],
             "image": torch.arange(len(train_ids), device=device).repeat_interleave(
                 dataset.alpha[0].size)}
+
+
+def _check_fits(weights: np.ndarray, supersampling: int, device: torch.device) -> None:
+    """InputError unless the ray bank of the (n, H, W, M) training ``weights`` fits in the
+    memory ``device`` has free: it holds every training pixel's n^2 rays (origins and
+    directions), colour, weights, alpha and image index, float32 (``_ray_bank``)."""
+    pixels = int(np.prod(weights.shape[:3]))
+    needed = pixels * 4 * (6 * supersampling ** 2 + 3 + weights.shape[-1] + 1 + 2)
+    free = torch.cuda.mem_get_info(device)[0] if device.type == "cuda" else _free_memory()
+    if needed > free:
+        raise InputError(f"the rays of {pixels} training pixels need {needed / 2**30:.1f} GB, "
+                         f"more than the {free / 2**30:.1f} GB free on {device}: train on "
+                         "smaller images (downscale them) or fewer of them")
+
+
+def _free_memory() -> float:
+    """Bytes of memory the system can give this process now (``MemAvailable``; free pages
+    where there is no /proc; unbounded where neither is known)."""
+    try:
+        with open("/proc/meminfo") as info:
+            fields = dict(line.split(":", 1) for line in info)
+        return int(fields["MemAvailable"].split()[0]) * 1024
+    except (OSError, KeyError, ValueError):
+        try:
+            return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, ValueError):
+            return float("inf")
 
 
 def _pixel_batch(config: TrainConfig, rays: dict, generator: torch.Generator) -> torch.Tensor:

@@ -213,3 +213,12 @@ def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
     fog, surface = optical.grad[1:3], optical.grad[3:]
     assert optical.grad[0] == 0 and fog.min() > 20 * surface.max() > 0
     assert losses.sparsity_loss(torch.zeros(0)) == 0
+
+
+def test_a_ray_bank_that_cannot_fit_is_refused_up_front():
+    from nerf_stage.trainer import _check_fits
+
+    huge = np.broadcast_to(np.zeros(1, np.float32), (10**4, 10**4, 10**3, 4))  # no memory
+    with pytest.raises(InputError, match="more than the"):
+        _check_fits(huge, 1, torch.device("cpu"))
+    _check_fits(np.zeros((2, 4, 4, 4), np.float32), 2, torch.device("cpu"))
