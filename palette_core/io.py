@@ -9,6 +9,7 @@ and fully transparent pixels are marked so the palette can leave them out.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import warnings
 from dataclasses import dataclass
@@ -96,6 +97,17 @@ def find_images(inputs: list[str | os.PathLike],
     return root, paths
 
 
+class SizedFile(io.FileIO):
+    """A file whose reads never ask for more than it holds: a decoder told a crafted chunk
+    length (a PNG's IDAT of 2 GiB in a file of a few kilobytes) would otherwise allocate
+    that length before reading."""
+
+    def read(self, size: int | None = -1) -> bytes:
+        if size is not None and size > 0:
+            size = min(size, max(os.fstat(self.fileno()).st_size - self.tell(), 0))
+        return super().read(size)
+
+
 @contextlib.contextmanager
 def open_image(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS):
     """Pillow's image of ``path``, its header checked against ``max_pixels`` before decoding.
@@ -106,17 +118,23 @@ def open_image(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS):
         If the file is not an image Pillow knows, or declares more than ``max_pixels``.
     """
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            im = Image.open(path)
+        file = SizedFile(path)
     except FileNotFoundError:
         raise InputError(f"image {path} does not exist") from None
+    except OSError as exc:
+        raise InputError(f"cannot read image {path}: {exc}") from None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(file)
     except Image.DecompressionBombError:
+        file.close()
         raise InputError(f"image {path} declares more pixels than --max-pixels "
                          f"{max_pixels} allows") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        file.close()
         raise InputError(f"cannot read image {path}: {exc}") from None
-    with im:
+    with file, im:
         if im.width * im.height > max_pixels:
             raise InputError(f"image {path} is {im.width}x{im.height}, more than --max-pixels "
                              f"{max_pixels} allows")
