@@ -15,6 +15,8 @@ pycolmap is an optional dependency (``pip install 'palette-nerf-toolkit[poses]'`
 from __future__ import annotations
 
 import os
+import resource
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +26,9 @@ from palette_core.errors import InputError, first_line
 from .cameras import Intrinsics, checked_camera
 from .distortion import Distortion
 
+#: What pycolmap's reader may take on a model in a child process (``_check_readable``).
+READ_SECONDS = 10
+READ_BYTES = 2 << 30
 #: Where a model may sit in a folder, in the order looked at (COLMAP's own layout first).
 MODEL_FOLDERS = ("sparse/0", "sparse", ".")
 #: Pixels that a camera's distortion may move an image corner before ``sfm`` undistorts.
@@ -62,6 +67,7 @@ def read_model(model: str | os.PathLike):
         If it cannot be read or registers no image.
     """
     pycolmap = import_pycolmap()
+    _check_readable(pycolmap, Path(model))
     try:
         reconstruction = pycolmap.Reconstruction(Path(model))
     except Exception as exc:  # pycolmap raises its own C++ exceptions
@@ -70,7 +76,44 @@ def read_model(model: str | os.PathLike):
         raise InputError(f"the COLMAP model in {model} registers no image")
     for camera in reconstruction.cameras.values():
         check_camera(camera, f"the COLMAP model in {model}")
+    try:
+        [image.name for image in reconstruction.images.values()]
+    except UnicodeDecodeError:
+        raise InputError(f"the COLMAP model in {model} names an image in bytes that are not "
+                         "UTF-8") from None
     return reconstruction
+
+
+def _check_readable(pycolmap, model: Path) -> None:
+    """InputError unless pycolmap reads ``model`` in a child process within
+    ``READ_SECONDS`` (plus a second a megabyte) and ``READ_BYTES`` (plus 64 bytes a byte of
+    the model) of address space: a crafted count inside a binary model makes its reader loop
+    or allocate without end, in C++ code that nothing here can interrupt."""
+    size = sum(f.stat().st_size for f in model.iterdir() if f.is_file())
+    pid = os.fork()
+    if pid == 0:  # the child: read, then leave without Python's teardown
+        code = 3
+        try:
+            signal.signal(signal.SIGALRM, signal.SIG_DFL)
+            signal.alarm(READ_SECONDS + size // 2**20)
+            hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+            limit = _address_space() + READ_BYTES + 64 * size
+            limit = limit if hard == resource.RLIM_INFINITY else min(limit, hard)
+            resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+            pycolmap.Reconstruction(model)
+            code = 0
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    if os.waitstatus_to_exitcode(status) < 0:
+        raise InputError(f"cannot read the COLMAP model in {model}: its reader stopped "
+                         f"({signal.Signals(-os.waitstatus_to_exitcode(status)).name}); the "
+                         "model is damaged or crafted")
+
+
+def _address_space() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
 
 
 def check_camera(camera, source: str) -> None:

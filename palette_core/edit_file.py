@@ -117,16 +117,25 @@ def read_edits(path: str | os.PathLike, stack: WeightStack) -> list[LocalEdit]:
     data = read_json(path, "edit file")
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{path} is not an edit file (format {FORMAT})")
-    made_for, ours = data.get("stack"), stack_identity(stack)
-    if (not isinstance(made_for, dict) or made_for.get("images") != ours["images"]
-            or np.shape(made_for.get("palette")) != np.shape(ours["palette"])
-            or not np.allclose(made_for["palette"], ours["palette"], atol=1e-6)):
+    if not _made_for(data.get("stack"), stack_identity(stack)):
         raise InputError(f"edit file {path} was made for another stack (its palette or its "
                          "images differ)")
     entries = data.get("edits")
     if not isinstance(entries, list) or not entries:
         raise InputError(f"edit file {path} must list its edits")
     return [_edit(entry, path, i, len(stack.palette)) for i, entry in enumerate(entries)]
+
+
+def _made_for(made_for, ours: dict) -> bool:
+    """Whether an edit file's ``stack`` entry (any JSON) names the stack of ``ours``."""
+    if not isinstance(made_for, dict) or made_for.get("images") != ours["images"]:
+        return False
+    try:
+        palette = np.asarray(made_for.get("palette"), np.float64)
+    except (TypeError, ValueError):  # not a table of numbers
+        return False
+    return palette.shape == np.shape(ours["palette"]) and np.allclose(palette, ours["palette"],
+                                                                      atol=1e-6)
 
 
 def _edit(entry, path: Path, i: int, k: int) -> LocalEdit:

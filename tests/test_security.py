@@ -191,6 +191,28 @@ def test_colmap_cameras_without_a_focal_length_are_refused(tmp_path, rng, capsys
     assert "camera 1: " in capsys.readouterr().err
 
 
+def test_a_binary_model_that_makes_its_reader_loop_is_refused(tmp_path, rng, capsys,
+                                                               monkeypatch):
+    """A count inside a binary model, made of inserted bytes, keeps pycolmap's reader
+    looping in C++: it is read first in a child that a time limit stops."""
+    pytest.importorskip("torch")
+    pytest.importorskip("pycolmap")
+    from nerf_stage import colmap
+    from nerf_stage.cli import main as nerf
+
+    monkeypatch.setattr(colmap, "READ_SECONDS", 2)
+    capture = colmap_capture(tmp_path / "c", rng, binary=True)
+    frames = capture / "sparse" / "0" / "frames.bin"
+    if not frames.exists():
+        pytest.skip("this pycolmap writes no frames.bin")
+    data = frames.read_bytes()
+    middle = len(data) // 2
+    frames.write_bytes(data[:middle] + b'"../../../etc/hostname"' + data[middle:])
+    assert nerf(["train", str(capture), "-o", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "COLMAP model" in err
+
+
 @pytest.mark.parametrize("field, value", [("fl_x", 0), ("cx", 1e9), ("w", 10**9)])
 def test_nerfstudio_cameras_out_of_bounds_are_refused(tmp_path, rng, field, value):
     pytest.importorskip("torch")
