@@ -127,15 +127,17 @@ def undistorted_camera(camera: Intrinsics, distortion: Distortion) -> Intrinsics
     if distortion.none:
         return camera
     u, v = _border(camera)
-    su, sv = sources(camera, distortion, camera, u, v)
-    if np.abs(np.hypot(su - u, sv - v)).max() < MIN_SHIFT:
-        return camera
+    with np.errstate(all="ignore"):  # a lens from elsewhere may overflow: not inside, then
+        su, sv = sources(camera, distortion, camera, u, v)
+        if np.abs(np.hypot(su - u, sv - v)).max() < MIN_SHIFT:
+            return camera
 
     def inside(log_scale: float) -> bool:
-        su, sv = sources(camera, distortion, _scaled(camera, math.exp(log_scale)), u, v)
-        return bool(np.all(np.isfinite(su) & np.isfinite(sv) & (su >= -1e-6)
-                           & (su <= camera.width + 1e-6) & (sv >= -1e-6)
-                           & (sv <= camera.height + 1e-6)))
+        with np.errstate(all="ignore"):
+            su, sv = sources(camera, distortion, _scaled(camera, math.exp(log_scale)), u, v)
+            return bool(np.all(np.isfinite(su) & np.isfinite(sv) & (su >= -1e-6)
+                               & (su <= camera.width + 1e-6) & (sv >= -1e-6)
+                               & (sv <= camera.height + 1e-6)))
 
     low, high = (math.log(s) for s in SCALE_RANGE)
     if not inside(high):
