@@ -184,6 +184,8 @@ def mutate(folder: Path, secret: Path, which: int, mutation: tuple) -> None:
 
 
 def _bytes_changed(data: bytes, kind: str, where: float, arg=None) -> bytes:
+    """``data`` truncated, with a byte flipped by ``arg``, or with bytes ``arg`` inserted, at
+    fraction ``where`` of its length."""
     at = int(where * len(data))
     if kind == "truncate":
         return data[:at]
@@ -213,6 +215,8 @@ def _replaced(value, index: int, new):
 
 
 def _npz_lie(data: bytes, kind: str, index: int, arg) -> bytes:
+    """NPZ ``data`` with member ``index``'s header declaring shape or dtype ``arg``, or its
+    directory entry claiming ``arg`` bytes."""
     with zipfile.ZipFile(io.BytesIO(data)) as z:
         members = {name: z.read(name) for name in z.namelist()}
     name = sorted(members)[index % len(members)]

@@ -22,6 +22,7 @@ from .base import FORMAT, WeightStack, check_dtype, check_meta, check_names
 #: largest array a deflated member of n bytes can hold is about n times this.
 MAX_DEFLATE_RATIO = 1032
 
+
 def write_npz_stack(stack: WeightStack, file: str | os.PathLike, dtype: str | None = None) -> None:
     """Write ``stack`` as NPZ format v1 to ``file`` (a path or a binary file object).
 
@@ -182,6 +183,7 @@ class NpzReader:
                              f"{info.compress_type} (NPZ files are stored or deflated)")
         if (info.header_offset + info.compress_size > self.size
                 or info.file_size > ratio[info.compress_type] * info.compress_size + 64):
+            # (+ 64: deflate's few bytes of framing around a tiny member)
             raise InputError(f"{self.path}: key {key!r} states {info.file_size} bytes, more "
                              f"than its {info.compress_size} bytes in the file can hold")
         if info.file_size > memory_bytes():
