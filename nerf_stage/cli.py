@@ -251,6 +251,9 @@ def _poses(args) -> int:
           + "".join(f"; {phase} {s:.1f} s" for phase, s in report.seconds.items()))
     if report.missing:
         print(f"not registered (left out of the capture): {', '.join(report.missing)}")
+    if len(report.models) > 1:
+        print(f"the photos split into {len(report.models)} models of "
+              f"{', '.join(map(str, report.models))} photos; the largest is kept")
     print(f"wrote {args.output} (nerfstudio layout); next: palette-decompose "
           f"{Path(args.output) / 'images'} -o {Path(args.output) / DEFAULT_STACK}, then "
           f"{PROG} train {args.output}")

@@ -59,6 +59,9 @@ class PosesReport:
     points: int
     undistorted: bool
     seconds: dict[str, float] = field(default_factory=dict)
+    models: list[int] = field(default_factory=list)
+    """Photos in each model structure from motion made, largest (the one kept) first: more
+    than one when the set split."""
 
 
 def list_photos(folder: str | os.PathLike) -> list[str]:
@@ -138,25 +141,30 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
     names = list_photos(photos)
     with tempfile.TemporaryDirectory(prefix="nerf-stage-poses-") as work:
         work, seconds = Path(work), {}
+        models = None
         if model is None:
-            model = _structure_from_motion(pycolmap, photos, names, work, camera_model,
-                                           matcher, progress, seconds)
+            model, models = _structure_from_motion(pycolmap, photos, names, work,
+                                                   camera_model, matcher, progress, seconds)
         reconstruction = read_model(model)
         registered = sorted(image.name for image in reconstruction.images.values()
                             if image.has_pose)
+        models = models or [len(registered)]
         strangers = sorted(set(registered) - set(names))
         if strangers:
             raise InputError(f"the COLMAP model in {model} names images that are not photos "
                              f"in {photos}: {', '.join(strangers[:3])}")
         missing = sorted(set(names) - set(registered))
         if len(registered) < max(MIN_PHOTOS, MIN_REGISTERED * len(names)):
+            split = (f"; they split into {len(models)} models of "
+                     f"{', '.join(map(str, models))} photos" if len(models) > 1 else "")
             raise InputError(f"only {len(registered)} of {len(names)} photos registered (at "
                              f"least {max(MIN_PHOTOS, round(MIN_REGISTERED * len(names)))} "
-                             "needed): the photos may overlap too little or lack texture")
+                             f"needed{split}): the photos may overlap too little or lack "
+                             "texture")
         undistort = any(distortion(c) > MAX_DISTORTION for c in reconstruction.cameras.values())
         report = PosesReport(registered, missing,
                              float(reconstruction.compute_mean_reprojection_error()),
-                             reconstruction.num_points3D(), undistort, seconds)
+                             reconstruction.num_points3D(), undistort, seconds, models)
         with publish_folder(out, force) as staging:
             images = staging / "images"
             start = time.perf_counter()
@@ -175,8 +183,9 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
 
 def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
                            camera_model: str, matcher: str, progress: bool,
-                           seconds: dict) -> Path:
-    """Run features, matching and mapping in ``work``; the folder of the largest model.
+                           seconds: dict) -> tuple[Path, list[int]]:
+    """Run features, matching and mapping in ``work``; the folder of the largest model, and
+    the photos in each model, largest first.
 
     Raises
     ------
@@ -217,7 +226,8 @@ def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
         raise InputError(f"structure from motion found no model for the {len(names)} photos in "
                          f"{photos}: they may overlap too little or lack texture")
     largest = max(models, key=lambda k: models[k].num_reg_images())
-    return work / "sparse" / str(largest)
+    sizes = sorted((m.num_reg_images() for m in models.values()), reverse=True)
+    return work / "sparse" / str(largest), sizes
 
 
 def _undistort(pycolmap, model: Path, photos: Path, names: list[str], work: Path,
