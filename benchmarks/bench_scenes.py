@@ -64,7 +64,7 @@ def exposed(scene: Path, sigma: float) -> Path:
     one per channel (seeded); the held-out views as rendered. Decomposed anew."""
     out = scene.with_name(f"{scene.name}-exposure{sigma:g}")
     if not (out / "weights.npz").exists():
-        shutil.copytree(scene, out, dirs_exist_ok=True,
+        shutil.copytree(scene, out, dirs_exist_ok=True, symlinks=True,  # links stay links
                         ignore=shutil.ignore_patterns("weights*"))
         rng = np.random.default_rng(0)
         for png in sorted((out / "train").glob("*.png")):

@@ -25,7 +25,7 @@ their simplex (a bilinear sample is a convex combination). docs/capture.md.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -158,16 +158,12 @@ def undistort(image: np.ndarray, camera: Intrinsics, distortion: Distortion,
     if target == camera:
         return image
     y0, x0, fy, fx = (a[..., None] if a.dtype == np.float32 else a
-                      for a in _bilinear(_key(camera), distortion, _key(target)))
+                      for a in _bilinear(astuple(camera), distortion, astuple(target)))
     y1 = np.minimum(y0 + 1, camera.height - 1)
     x1 = np.minimum(x0 + 1, camera.width - 1)
     top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
     bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
     return top * (1 - fy) + bottom * fy
-
-
-def _key(camera: Intrinsics) -> tuple:
-    return (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
 
 
 @lru_cache(maxsize=2)

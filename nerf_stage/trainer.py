@@ -19,6 +19,7 @@ to one) are multiplied by the frame's alpha; transport stacks from
 from __future__ import annotations
 
 import os
+import resource
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -140,8 +141,6 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
 def peak_memory(device: torch.device) -> str:
     """What this process has held at most: its peak resident memory, and on CUDA the
     device's peak allocation (``torch.cuda.max_memory_allocated``)."""
-    import resource
-
     text = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GB resident"
     if device.type == "cuda":
         text += f", {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GB on {device}"

@@ -102,9 +102,13 @@ class SizedFile(io.FileIO):
     length (a PNG's IDAT of 2 GiB in a file of a few kilobytes) would otherwise allocate
     that length before reading."""
 
+    def __init__(self, path: str | os.PathLike):
+        super().__init__(path)
+        self.size = os.fstat(self.fileno()).st_size
+
     def read(self, size: int | None = -1) -> bytes:
         if size is not None and size > 0:
-            size = min(size, max(os.fstat(self.fileno()).st_size - self.tell(), 0))
+            size = min(size, max(self.size - self.tell(), 0))
         return super().read(size)
 
 
