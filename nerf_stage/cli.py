@@ -105,7 +105,7 @@ def _add_bake(commands) -> None:
 
 
 def _add_poses(commands) -> None:
-    from .sfm import CAMERA_MODELS, MATCHERS
+    from .sfm import CAMERA_MODELS, MAPPERS, MATCHERS
 
     poses = commands.add_parser(
         "poses", help="camera poses for a folder of photos (structure from motion, pycolmap)",
@@ -123,6 +123,9 @@ def _add_poses(commands) -> None:
     poses.add_argument("--matcher", choices=MATCHERS, default="auto",
                        help="pairs to match: every pair, or neighbours in name order (video "
                             "frames); auto (default) matches every pair of up to 150 photos")
+    poses.add_argument("--mapper", choices=MAPPERS, default="global",
+                       help="global (default: GLOMAP, robust on forward-moving sequences) or "
+                            "incremental (COLMAP's classic mapper)")
     poses.add_argument("--force", action="store_true", help="replace a non-empty CAPTURE")
     poses.set_defaults(run=_poses)
 
@@ -243,7 +246,7 @@ def _poses(args) -> int:
     from .sfm import estimate_poses
 
     report = estimate_poses(args.source, args.output, args.camera_model, args.matcher,
-                            args.force)
+                            args.mapper, args.force)
     total = len(report.registered) + len(report.missing)
     print(f"registered {len(report.registered)} of {total} photos: {report.points} points, "
           f"mean reprojection error {report.reprojection_error:.2f} px"

@@ -3,12 +3,15 @@
 ``estimate_poses`` runs COLMAP's phases, each with a progress bar: SIFT features (one
 camera for all photos, ``camera_model``), matching (every pair up to ``EXHAUSTIVE_UP_TO``
 photos, else each photo with its ``SEQUENTIAL_OVERLAP`` neighbours in name order and those
-at power-of-two offsets, as COLMAP's sequential matcher pairs video frames), incremental
-mapping, and undistortion where the camera's distortion moves a pixel by more than
-``colmap.MAX_DISTORTION``. A folder that already holds a COLMAP model is converted without
-running structure from motion. The capture is written in nerfstudio's layout (``images/``
-and ``transforms.json``, in the normalised frame of ``colmap.model_frames``), with the
-COLMAP model of its images in ``sparse/0``. docs/capture.md.
+at power-of-two offsets, as COLMAP's sequential matcher pairs video frames), mapping
+(``MAPPERS``: global by default, GLOMAP's rotation averaging and global positioning, which
+registers forward-moving street sequences where the incremental mapper finds no initial
+pair; incremental, COLMAP's classic, on request), and undistortion where the camera's
+distortion moves a pixel by more than ``colmap.MAX_DISTORTION``. A folder that already
+holds a COLMAP model is converted without running structure from motion. The capture is
+written in nerfstudio's layout (``images/`` and ``transforms.json``, in the normalised
+frame of ``colmap.model_frames``), with the COLMAP model of its images in ``sparse/0``.
+docs/capture.md.
 """
 
 from __future__ import annotations
@@ -43,6 +46,8 @@ MIN_REGISTERED = 0.5  # share of the photos that must register
 EXHAUSTIVE_UP_TO = 150  # photos matched pair by pair; more are matched sequentially
 SEQUENTIAL_OVERLAP = 15
 MATCHERS = ("auto", "exhaustive", "sequential")
+MAPPERS = ("global", "incremental")
+SEED = 0  # RANSAC and the mappers: the same photos give the same poses
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 _EXTRACT_CHUNK, _MATCH_CHUNK = 8, 256  # photos, pairs a call (a step of the progress bars)
 
@@ -118,7 +123,8 @@ def image_pairs(names: list[str], matcher: str = "auto") -> list[tuple[str, str]
 
 def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
                    camera_model: str = "SIMPLE_RADIAL", matcher: str = "auto",
-                   force: bool = False, progress: bool = True) -> PosesReport:
+                   mapper: str = "global", force: bool = False,
+                   progress: bool = True) -> PosesReport:
     """Write the capture folder ``out`` for the photos in ``source``, or for the COLMAP model
     that ``source`` holds (``colmap.find_model``; its photos in ``source/images``).
 
@@ -129,9 +135,9 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
         ``MIN_REGISTERED`` of the photos registered, an ``out`` among the photos or not
         empty (without ``force``); nothing is written then.
     """
-    if camera_model not in CAMERA_MODELS or matcher not in MATCHERS:
-        raise InputError(f"camera model must be one of {', '.join(CAMERA_MODELS)} and matcher "
-                         f"one of {', '.join(MATCHERS)}")
+    if camera_model not in CAMERA_MODELS or matcher not in MATCHERS or mapper not in MAPPERS:
+        raise InputError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, matcher one "
+                         f"of {', '.join(MATCHERS)} and mapper one of {', '.join(MAPPERS)}")
     source, out = Path(source), Path(out)
     check_apart([out], [source])
     check_outdir(out, force)  # before minutes of work; publish_folder checks again at the end
@@ -144,7 +150,8 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
         models = None
         if model is None:
             model, models = _structure_from_motion(pycolmap, photos, names, work,
-                                                   camera_model, matcher, progress, seconds)
+                                                   camera_model, matcher, mapper, progress,
+                                                   seconds)
         reconstruction = read_model(model)
         registered = sorted(image.name for image in reconstruction.images.values()
                             if image.has_pose)
@@ -182,7 +189,7 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
 
 
 def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
-                           camera_model: str, matcher: str, progress: bool,
+                           camera_model: str, matcher: str, mapper: str, progress: bool,
                            seconds: dict) -> tuple[Path, list[int]]:
     """Run features, matching and mapping in ``work``; the folder of the largest model, and
     the photos in each model, largest first.
@@ -193,6 +200,7 @@ def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
         If no model could be made.
     """
     database, cpu = work / "database.db", pycolmap.Device.cpu
+    pycolmap.set_random_seed(SEED)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     start = time.perf_counter()
@@ -216,10 +224,19 @@ def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
             bar.update(len(chunk))
     seconds["matching"] = time.perf_counter() - start
     start = time.perf_counter()
-    with tqdm(total=len(names), desc="mapping", unit="photo", disable=not progress) as bar:
-        models = pycolmap.incremental_mapping(database, photos, work / "sparse",
-                                              initial_image_pair_callback=lambda: bar.update(2),
-                                              next_image_callback=lambda: bar.update(1))
+    with tqdm(total=len(names), desc=f"{mapper} mapping", unit="photo",
+              disable=not progress) as bar:
+        if mapper == "global":
+            options = pycolmap.GlobalPipelineOptions()
+            options.random_seed = SEED
+            models = pycolmap.global_mapping(database, photos, work / "sparse", options)
+        else:
+            options = pycolmap.IncrementalPipelineOptions()
+            options.random_seed = SEED
+            models = pycolmap.incremental_mapping(
+                database, photos, work / "sparse", options,
+                initial_image_pair_callback=lambda: bar.update(2),
+                next_image_callback=lambda: bar.update(1))
         bar.n = max((m.num_reg_images() for m in models.values()), default=0)  # the kept one
     seconds["mapping"] = time.perf_counter() - start
     if not models:

@@ -96,6 +96,25 @@ def test_photos_register_into_a_capture_folder(corner, capture):
     assert dataset.poses[:, :3, 1].mean(0) @ [0, 1, 0] > 0.9  # the cameras' up is +y
 
 
+
+def test_a_walk_forward_registers_with_sequential_matching(tmp_path):
+    """Eight frames walking towards the corner (forward motion, the parallax a street
+    sequence has; weaving, so that the centres fix the similarity of ``pose_errors``):
+    every frame registers, each pose within a few degrees."""
+    rng, folder = np.random.default_rng(2), tmp_path / "walk"
+    folder.mkdir()
+    textures = [_texture(rng) for _ in range(3)]
+    eyes = [[0.6 + 0.2 * (i % 2), 1.3 + 0.1 * (i % 3), 3.0 - 0.3 * i] for i in range(8)]
+    poses = np.array([look_at(eye, [-0.8, 0.9, -2.0]) for eye in eyes])
+    for i, pose in enumerate(poses):
+        Image.fromarray(_render_corner(pose, textures)).save(folder / f"f{i:02d}.png")
+    out = tmp_path / "capture"
+    assert nerf_stage(["poses", str(folder), "-o", str(out), "--matcher", "sequential"]) == 0
+    dataset = load_dataset(out)
+    assert len(dataset.names) == 8
+    rotation, centre = pose_errors(dataset.poses, poses)
+    assert rotation.max() < 3.0 and centre.max() < 0.1
+
 def test_text_and_binary_models_read_the_same(capture, tmp_path):
     model = pycolmap.Reconstruction(capture / "sparse" / "0")
     datasets = []
