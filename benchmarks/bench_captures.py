@@ -19,13 +19,14 @@ undistorted, as PNGs in nerfstudio's layout with every eighth photo held out in 
 ``test_filenames`` (``OUT/NAME/data``): both NeRF codes read those same pixels, poses and
 splits. ``palette-decompose -k 6`` makes the weight stack of its photos.
 
-Budget: each method trains for ``--minutes``. Ours: a short probe run measures the seconds
-an iteration takes, and the pretrain and fine-tune iterations (in the defaults' ratio) are
-set to fill the budget. nerfacto (PyTorch implementation, ``--machine.device-type cpu``
-without CUDA) runs in its own virtual environment, ``--nerfacto-venv``, which this script
-creates when missing (PyPI's ``nerfstudio``; never a dependency of ours); it trains with
-``--max-num-iterations`` set the same way from its own probe. Its held-out views are
-rendered by ``ns-eval`` into PNGs and scored here, by the same ``image_scores`` as ours.
+Budget: each method trains for ``--minutes``. Ours: a short probe run measures the
+seconds an iteration takes, and the pretrain and fine-tune iterations (in the defaults'
+ratio) are set to fill the budget, corrected once by the first run's own rate (``ours``).
+nerfacto (PyTorch implementation, ``--machine.device-type cpu`` without CUDA) runs in its
+own virtual environment, ``--nerfacto-venv``, which this script creates when missing
+(PyPI's ``nerfstudio``; never a dependency of ours); its ``--max-num-iterations`` come from
+the median time of its iterations in a probe run. Its held-out views are rendered by
+``ns-eval`` into PNGs and scored here, by the same ``image_scores`` as ours.
 
     python benchmarks/bench_captures.py ROOT [--out benchmarks/out/captures]
         [--captures fox lund sceaux monstree] [--minutes 20] [--downscale 4]
@@ -44,21 +45,26 @@ import re
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 from bench_scenes import error_map, rendered
 from PIL import Image
 
+from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
 from nerf_stage.metrics import image_scores
 from nerf_stage.run import load_run
 
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
-PROBE_ITERS = 20  # iterations of the probe that times a method
+PROBE_ITERS = 40  # iterations of the probe that times a method
+BUDGET_SLACK = 0.1  # a run may miss its wall-clock budget by this share
+PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
+#: A step's line of ns-train's log: step, then the iteration's time ("4 s, 612.345 ms").
+ITERATION_TIME = re.compile(r"^\s*(\d+) \(\S+%\)\s+(?:(\d+) m, )?(?:(\d+) s, )?([\d.]+) ms",
+                            re.MULTILINE)
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
 #: nerfacto's model builds an LPIPS metric whose AlexNet weights torchvision downloads; with
 #: no network here its venv gets this ``sitecustomize.py``, an LPIPS that returns NaN (a
@@ -85,6 +91,37 @@ def posed(source: Path, out: Path) -> Path:
     return out
 
 
+def undistorted_beforehand(capture: Path, out: Path) -> Path:
+    """``capture`` (nerfstudio layout, one OpenCV lens) undistorted by COLMAP's own
+    undistorter into the COLMAP project ``out`` (``images/``, ``sparse/``): the reference
+    that our undistortion on reading is measured against."""
+    from scipy.spatial.transform import Rotation
+
+    from nerf_stage.colmap import import_pycolmap
+
+    if not (out / "sparse").is_dir():
+        meta = json.loads((capture / "transforms.json").read_text())
+        model = out.with_name(out.name + "-distorted")
+        model.mkdir(parents=True, exist_ok=True)
+        lens = " ".join(str(meta.get(key, 0.0)) for key in ("k1", "k2", "p1", "p2"))
+        (model / "cameras.txt").write_text(
+            f"1 OPENCV {meta['w']:.0f} {meta['h']:.0f} {meta['fl_x']} {meta['fl_y']} "
+            f"{meta['cx']} {meta['cy']} {lens}\n")
+        lines = []
+        for i, frame in enumerate(meta["frames"]):
+            to_world = np.array(frame["transform_matrix"], float)
+            to_world[:3, 1:3] *= -1  # OpenGL camera axes to OpenCV's
+            to_camera = np.linalg.inv(to_world)
+            x, y, z, w = Rotation.from_matrix(to_camera[:3, :3]).as_quat()
+            name = Path(frame["file_path"]).name
+            lines.append(f"{i + 1} {w} {x} {y} {z} {' '.join(map(str, to_camera[:3, 3]))} "
+                         f"1 {name}\n\n")
+        (model / "images.txt").write_text("".join(lines))
+        (model / "points3D.txt").write_text("")
+        import_pycolmap().undistort_images(out, model, capture / "images")
+    return out
+
+
 def small_capture(capture: Path, out: Path, downscale: int) -> Path:
     """``capture`` at 1/``downscale`` of its size, undistorted, in PNGs with its splits
     named in ``transforms.json`` (written once), and its weight stack."""
@@ -104,37 +141,45 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
             "camera_model": "PINHOLE", "w": data.intrinsics.width, "h": data.intrinsics.height,
             "frames": frames, "train_filenames": splits["train"],
             "val_filenames": splits["test"], "test_filenames": splits["test"]}, indent=1))
-        _run([BIN / "palette-decompose", out / "images", "-k", "6", "-o", out / "weights.npz"],
+        _run([BIN / "palette-decompose", out / "images", "-k", "6", "-o", out / "weights.npz",
+              "--force"],
              "decompose")
     return out
 
 
 def ours(data_dir: Path, run_dir: Path, strategy: str, seconds: float) -> dict:
-    """Train our NeRF on ``data_dir`` for about ``seconds``; its scores, renders, iterations,
-    training seconds and peak memory."""
+    """Train our NeRF on ``data_dir`` for about ``seconds``; its renders of the held-out
+    views, iterations, training seconds and peak memory.
+
+    The iterations come from a probe run's rate; iterations speed up as the occupancy
+    grid prunes empty space, so a run that misses the budget by more than
+    ``BUDGET_SLACK`` is trained once more with its iterations scaled by the miss."""
     if not (run_dir / "checkpoint.pt").is_file():
         probe = run_dir.with_name(run_dir.name + "-probe")
-        _train(data_dir, probe, strategy, PROBE_ITERS, PROBE_ITERS)
+        _train(data_dir, probe, strategy, PROBE_ITERS)
         log = load_run(probe).record.log
-        per_iter = (log[-1]["seconds"] - log[0]["seconds"]) / (len(log) - 1)
-        total = max(2, int(seconds / per_iter))
-        pretrain = round(total * 4200 / 7200)
-        output = _train(data_dir, run_dir, strategy, pretrain, total - pretrain)
-        (run_dir / "train.log").write_text(output)
+        total = seconds * (len(log) - 1) / (log[-1]["seconds"] - log[0]["seconds"])
         shutil.rmtree(probe)
+        for _ in range(2):
+            (run_dir / "train.log").write_text(_train(data_dir, run_dir, strategy, total))
+            took = load_run(run_dir).record.log[-1]["seconds"]
+            if abs(took / seconds - 1) <= BUDGET_SLACK:
+                break
+            total *= seconds / took
     run, data = load_run(run_dir), load_dataset(data_dir)
-    ids = data.indices("test")
-    render = rendered(run, data, ids)
     memory = re.search(r"peak memory ([\d.]+) GB", (run_dir / "train.log").read_text())
-    return {"render": render, "iterations": run.record.iteration,
-            "seconds": run.record.log[-1]["seconds"],
+    return {"render": rendered(run, data, data.indices("test")),
+            "iterations": run.record.iteration, "seconds": run.record.log[-1]["seconds"],
             "peak_gb": float(memory.group(1)) if memory else None}
 
 
-def _train(data_dir: Path, run_dir: Path, strategy: str, pretrain: int, finetune: int) -> str:
+def _train(data_dir: Path, run_dir: Path, strategy: str, iterations: float) -> str:
+    """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them."""
+    total = max(2, round(iterations))
+    pretrain = max(1, round(total * PRETRAIN_SHARE))
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--pretrain-iters", str(pretrain),
-                 "--finetune-iters", str(finetune)], f"train {strategy}")
+                 "--finetune-iters", str(total - pretrain)], f"train {strategy}")
 
 
 def nerfacto_venv(venv: Path) -> Path:
@@ -154,39 +199,39 @@ def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
     probe run); its renders of the held-out views, iterations and training seconds."""
     bin_dir, renders = nerfacto_venv(venv), run_dir / "renders"
     if not (run_dir / "result.json").is_file():
-        per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "probe", PROBE_ITERS)[1]
+        per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "probe", 15)[1]
+        shutil.rmtree(run_dir / "probe")
         iterations = max(2, int(seconds / per_iter))
         config, per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "train", iterations)
         shutil.rmtree(renders, ignore_errors=True)
         _run([bin_dir / "ns-eval", "--load-config", config, "--output-path",
-              run_dir / "eval.json", "--render-output-path", renders], "ns-eval")
+              run_dir / "eval.json", "--render-output-path", renders], "ns-eval",
+             TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD="1")  # its own checkpoint, pickled by torch<2.6
         (run_dir / "result.json").write_text(json.dumps(
             {"iterations": iterations, "seconds": iterations * per_iter}))
     result = json.loads((run_dir / "result.json").read_text())
-    images = sorted(renders.glob("*-rgb.png")) or sorted(renders.glob("*rgb*"))
-    result["render"] = np.stack([np.asarray(Image.open(p).convert("RGB"), np.float32) / 255
-                                 for p in images])
+    pairs = [np.asarray(Image.open(p).convert("RGB"), np.float32) / 255  # truth | render
+             for p in sorted(renders.glob("eval_img_*.png"))]
+    result["render"] = np.stack([pair[:, pair.shape[1] // 2:] for pair in pairs])
     return result
 
 
 def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int):
-    """Run ``ns-train nerfacto`` for ``iterations``; its config file and seconds an
-    iteration (the training loop's, from its own timing, without start-up)."""
+    """Run ``ns-train nerfacto`` for ``iterations``; its config file and the median seconds
+    of its iterations after the first (the times it logs of each)."""
     device = [] if _has_cuda(bin_dir) else ["--machine.device-type", "cpu",
                                             "--pipeline.model.implementation", "torch"]
-    start = time.perf_counter()
     output = _run([bin_dir / "ns-train", "nerfacto", "--output-dir", out,
                    "--max-num-iterations", str(iterations), "--vis", "tensorboard",
+                   "--logging.steps-per-log", "1", "--logging.local-writer.max-log-size", "0",
                    "--steps-per-save", str(iterations), "--viewer.quit-on-train-completion",
                    "True", *device, "nerfstudio-data", "--data", data_dir,
                    "--downscale-factor", "1"], "ns-train")
-    wall = time.perf_counter() - start
-    config = sorted(out.rglob("config.yml"))[-1]
-    stamps = sorted(p.stat().st_mtime for p in config.parent.rglob("*.ckpt"))
-    began = config.stat().st_mtime
-    seconds = (stamps[-1] - began) if stamps else wall
-    del output
-    return config, seconds / iterations
+    times = [60 * float(m or 0) + float(s or 0) + float(ms) / 1000
+             for step, m, s, ms in ITERATION_TIME.findall(output) if int(step) > 0]
+    if not times:
+        sys.exit(f"ns-train logged no iteration times:\n{output[-2000:]}")
+    return sorted(out.rglob("config.yml"))[-1], float(np.median(times))
 
 
 def _has_cuda(bin_dir: Path) -> bool:
@@ -196,10 +241,11 @@ def _has_cuda(bin_dir: Path) -> bool:
     return probe.stdout.strip() == "True"
 
 
-def _run(command: list, what: str) -> str:
-    """Run ``command``; its output (stderr too), or exit with its last lines."""
+def _run(command: list, what: str, **env: str) -> str:
+    """Run ``command`` with ``env`` added; its output (stderr too), or exit with its last
+    lines."""
     done = subprocess.run([str(c) for c in command], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                          env={**os.environ, "PYTHONUNBUFFERED": "1", **env})
     if done.returncode:
         sys.exit(f"{what} failed:\n" + "\n".join((done.stdout + done.stderr)
                                                    .splitlines()[-15:]))
@@ -214,14 +260,25 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--minutes", type=float, default=20.0)
     parser.add_argument("--downscale", type=int, default=4)
+    parser.add_argument("--undistorted-beforehand", action="store_true",
+                        help="benchmark NAME-undistorted beside each posed capture with a "
+                             "lens: its photos undistorted by COLMAP, not by us")
     parser.add_argument("--nerfacto-venv", type=Path,
                         default=Path("benchmarks/out/nerfacto-venv"))
     args = parser.parse_args()
     results_path = args.out / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
+    captures = []
     for name in args.captures:
+        capture = posed(args.root / name, args.out / name / "posed")
+        captures.append((name, capture))
+        lens = "k1" in json.loads((capture / "transforms.json").read_text())
+        if args.undistorted_beforehand and lens:
+            folder = args.out / f"{name}-undistorted"
+            project = undistorted_beforehand(capture, folder / "colmap")
+            captures.append((folder.name, posed(project, folder / "posed")))
+    for name, capture in captures:
         folder = args.out / name
-        capture = posed(args.root / name, folder / "posed")
         data_dir = small_capture(capture, folder / "data", args.downscale)
         data = load_dataset(data_dir)
         truth = data.images[data.indices("test")]

@@ -439,8 +439,10 @@ def _nerfstudio_lens(fields: dict, where) -> Distortion:
 
 def _nerfstudio_splits(data: dict, names: list[str], path: Path) -> list[str]:
     """The split of each frame: from nerfstudio's ``train_filenames``, ``val_filenames`` and
-    ``test_filenames`` lists where the file has any (a frame in exactly one of them), else
-    every eighth frame held out (``_holdout``)."""
+    ``test_filenames`` lists where the file has any, else every eighth frame held out
+    (``_holdout``). A frame is in one list, or in ``val`` and ``test`` both (nerfstudio
+    holds out its val views while training and its test views in ``ns-eval``; a capture
+    made for both names the same held-out frames twice): then a test view."""
     lists = {split: data[f"{split}_filenames"] for split in SPLITS
              if f"{split}_filenames" in data}
     if not lists:
@@ -451,7 +453,10 @@ def _nerfstudio_splits(data: dict, names: list[str], path: Path) -> list[str]:
             raise InputError(f"{path}: '{split}_filenames' must be a list of file paths")
         for name in files:
             name = PurePosixPath(os.path.normpath(name)).as_posix()
-            if listed.setdefault(name, split) != split:
+            before = listed.setdefault(name, split)
+            if {before, split} == {"val", "test"}:
+                listed[name] = "test"
+            elif before != split:
                 raise InputError(f"{path}: {name} is listed in two splits")
     unlisted = [name for name in names if name not in listed]
     if unlisted:

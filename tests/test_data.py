@@ -79,6 +79,10 @@ def test_nerfstudio_split_lists(tmp_path):
              "val_filenames": ["images/f1.png"], "test_filenames": ["images/f3.png"]}
     data = load_dataset(nerfstudio_folder(tmp_path, **lists))
     assert data.splits == ["train", "val", "train", "test"]
+    lists["train_filenames"].append("images/f1.png")
+    lists["val_filenames"] = lists["test_filenames"]  # held out for nerfstudio's both
+    data = load_dataset(nerfstudio_folder(tmp_path / "again", **lists))
+    assert data.splits == ["train", "train", "train", "test"]
 
 
 @pytest.mark.parametrize("lists, message", [
