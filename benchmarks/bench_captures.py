@@ -21,7 +21,8 @@ splits. ``palette-decompose -k 6`` makes the weight stack of its photos.
 
 Budget: each method trains for ``--minutes``. Ours: a short probe run measures the
 seconds an iteration takes, and the pretrain and fine-tune iterations (in the defaults'
-ratio) are set to fill the budget, corrected once by the first run's own rate (``ours``).
+ratio) are set to fill the budget, and ``--minutes`` ends each stage at its share
+(``ours``).
 nerfacto (PyTorch implementation, ``--machine.device-type cpu`` without CUDA) runs in its
 own virtual environment, ``--nerfacto-venv``, which this script creates when missing
 (PyPI's ``nerfstudio``; never a dependency of ours); its ``--max-num-iterations`` come from
@@ -59,7 +60,8 @@ from nerf_stage.run import load_run
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
 PROBE_ITERS = 40  # iterations of the probe that times a method
-BUDGET_SLACK = 0.1  # a run may miss its wall-clock budget by this share
+BUDGET_SLACK = 0.1  # a run may end this share of its wall-clock budget early
+HEADROOM = 1.5  # iterations planned beyond the probe's rate
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 #: A step's line of ns-train's log: step, then the iteration's time ("4 s, 612.345 ms").
@@ -148,38 +150,43 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
 
 
 def ours(data_dir: Path, run_dir: Path, strategy: str, seconds: float) -> dict:
-    """Train our NeRF on ``data_dir`` for about ``seconds``; its renders of the held-out
+    """Train our NeRF on ``data_dir`` within ``seconds``; its renders of the held-out
     views, iterations, training seconds and peak memory.
 
-    The iterations come from a probe run's rate; iterations speed up as the occupancy
-    grid prunes empty space, so a run that misses the budget by more than
-    ``BUDGET_SLACK`` is trained once more with its iterations scaled by the miss."""
+    ``nerf-stage train --minutes`` ends each stage at its share of the budget. The
+    iterations, which set the learning-rate schedule, come from a probe run's rate (with
+    ``HEADROOM``: iterations speed up as the occupancy grid prunes empty space); a run that
+    ends more than ``BUDGET_SLACK`` early is trained once more with more iterations."""
     if not (run_dir / "checkpoint.pt").is_file():
         probe = run_dir.with_name(run_dir.name + "-probe")
-        _train(data_dir, probe, strategy, PROBE_ITERS)
+        _train(data_dir, probe, strategy, PROBE_ITERS, 0.0)
         log = load_run(probe).record.log
-        total = seconds * (len(log) - 1) / (log[-1]["seconds"] - log[0]["seconds"])
+        total = HEADROOM * seconds * (len(log) - 1) / (log[-1]["seconds"] - log[0]["seconds"])
         shutil.rmtree(probe)
         for _ in range(2):
-            (run_dir / "train.log").write_text(_train(data_dir, run_dir, strategy, total))
+            output = _train(data_dir, run_dir, strategy, total, seconds / 60)
+            (run_dir / "train.log").write_text(output)
             took = load_run(run_dir).record.log[-1]["seconds"]
-            if abs(took / seconds - 1) <= BUDGET_SLACK:
+            if took >= (1 - BUDGET_SLACK) * seconds:
                 break
             total *= seconds / took
     run, data = load_run(run_dir), load_dataset(data_dir)
     memory = re.search(r"peak memory ([\d.]+) GB", (run_dir / "train.log").read_text())
     return {"render": rendered(run, data, data.indices("test")),
-            "iterations": run.record.iteration, "seconds": run.record.log[-1]["seconds"],
+            "iterations": len(run.record.log), "seconds": run.record.log[-1]["seconds"],
             "peak_gb": float(memory.group(1)) if memory else None}
 
 
-def _train(data_dir: Path, run_dir: Path, strategy: str, iterations: float) -> str:
-    """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them."""
+def _train(data_dir: Path, run_dir: Path, strategy: str, iterations: float,
+           minutes: float) -> str:
+    """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them,
+    within ``minutes`` (0: no limit)."""
     total = max(2, round(iterations))
     pretrain = max(1, round(total * PRETRAIN_SHARE))
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--pretrain-iters", str(pretrain),
-                 "--finetune-iters", str(total - pretrain)], f"train {strategy}")
+                 "--finetune-iters", str(total - pretrain), "--minutes", str(minutes)],
+                f"train {strategy}")
 
 
 def nerfacto_venv(venv: Path) -> Path:

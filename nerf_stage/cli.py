@@ -284,8 +284,9 @@ def _train(args) -> int:
     run = train(config, dataset, read_stack(weights), rundir, resume=args.resume,
                 force=args.force, weights_path=str(weights.resolve()))
     log = run.record.log
-    print(f"trained {config.backbone} ({config.strategy}) for {log[-1]['iteration']} "
-          f"iterations in {log[-1]['seconds']:.0f} s, last batch PSNR {log[-1]['psnr']:.2f} dB, "
+    limited = " (the --minutes limit)" if len(log) < config.total_iters else ""
+    print(f"trained {config.backbone} ({config.strategy}) for {len(log)} iterations in "
+          f"{log[-1]['seconds']:.0f} s{limited}, last batch PSNR {log[-1]['psnr']:.2f} dB, "
           f"peak memory {peak_memory(run.occupancy.extent.device)}")
     print(f"wrote {rundir / CHECKPOINT}; next: {PROG} render {rundir} -o DIR")
     return 0

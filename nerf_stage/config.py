@@ -108,6 +108,10 @@ class TrainConfig:
     """Seed of the weight initialisation, ray batches and sample jitter."""
     checkpoint_every: int = 500
     """Iterations between checkpoints."""
+    minutes: float = 0.0
+    """Wall-clock limit of training (0: none). Each stage stops at its share of it (two-stage
+    pretraining: P / (P + F) of it) or after its iterations, whichever comes first; the
+    iterations still set the learning-rate schedule. For comparing NeRFs at one budget."""
     grid: GridConfig = field(default_factory=GridConfig)
     """Settings of the ``grid`` backbone."""
     mlp: MLPConfig = field(default_factory=MLPConfig)
@@ -118,7 +122,7 @@ class TrainConfig:
         self.strategy = member(Strategy, self.strategy, "strategy")
         self.space = member(Space, self.space, "space")
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
-                      "distortion_weight", "near_gradient")
+                      "distortion_weight", "near_gradient", "minutes")
         positive(self, "lr_decay")
         if not isinstance(self.appearance, bool):
             raise InputError(f"appearance must be true or false, got {self.appearance!r}")

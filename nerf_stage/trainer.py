@@ -119,10 +119,11 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         _load_optimisers(optimisers, optimiser_states, rundir)
     terms = torch.as_tensor(run.terms, dtype=torch.float32, device=device)
     background = torch.as_tensor(config.background, dtype=torch.float32, device=device)
-    bar = tqdm(range(start, config.total_iters), desc=f"train {config.backbone}",
-               initial=start, total=config.total_iters, disable=not progress, unit="it")
+    bar = tqdm(desc=f"train {config.backbone}", initial=start, total=config.total_iters,
+               disable=not progress, unit="it")
     clock = time.perf_counter() - (log[-1]["seconds"] if log else 0.0)
-    for it in bar:
+    it = start
+    while it < config.total_iters:
         finetuning = config.strategy == Strategy.TWO_STAGE and it >= config.pretrain_iters
         if finetuning and run.field.kind == RGB:
             _start_finetune(run)
@@ -131,11 +132,28 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning)
         log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
                     "loss": loss.item(), "psnr": psnr, "stage": str(run.field.kind)})
-        run.record.iteration = it + 1
+        after = _next_iteration(config, it + 1, log[-1]["seconds"])
+        run.record.iteration = after
+        bar.update(after - it)
         bar.set_postfix(stage=run.field.kind, loss=f"{loss.item():.2e}", psnr=f"{psnr:.2f}")
-        if (it + 1) % config.checkpoint_every == 0 or it + 1 == config.total_iters:
+        if (it + 1) % config.checkpoint_every == 0 or after == config.total_iters:
             save_checkpoint(run, rundir / CHECKPOINT, optimisers, generator)
+        it = after
+    bar.close()
     return run
+
+
+def _next_iteration(config: TrainConfig, it: int, seconds: float) -> int:
+    """The iteration after ``it`` iterations in ``seconds``: ``it``, or the next stage's
+    first (two-stage fine-tuning; the end for one stage or the last) once the stage has
+    used its share of ``config.minutes``."""
+    if not config.minutes:
+        return it
+    pretraining = config.strategy == Strategy.TWO_STAGE and it < config.pretrain_iters
+    share = config.pretrain_iters / config.total_iters if pretraining else 1.0
+    if seconds < 60 * config.minutes * share:
+        return it
+    return config.pretrain_iters if pretraining else config.total_iters
 
 
 def peak_memory(device: torch.device) -> str:

@@ -181,6 +181,17 @@ def test_a_run_with_other_optimisers_does_not_resume(cornell, tmp_path):
         trained(cornell, config, tmp_path / "run", resume=True)
 
 
+def test_a_wall_clock_limit_ends_each_stage_at_its_share(cornell, tmp_path):
+    config = tiny_config(pretrain_iters=50, finetune_iters=50, minutes=1e-9)
+    run = trained(cornell, config, tmp_path / "run")  # each stage's first iteration only
+    assert [entry["iteration"] for entry in run.record.log] == [1, 51]
+    assert run.record.iteration == 100 and run.field.kind == "transport"
+    assert trainer_module._next_iteration(config, 7, 0.0) == 7  # within the limit
+    assert trainer_module._next_iteration(replace(config, minutes=0.0), 7, 1e9) == 7
+    with pytest.raises(InputError, match="minutes"):
+        TrainConfig(minutes=-1.0)
+
+
 @pytest.mark.parametrize("loss", ["rgb_weight", "sparsity_weight"])
 def test_loss_weights_are_non_negative(loss):
     assert getattr(TrainConfig(), loss) > 0
