@@ -59,7 +59,8 @@ from nerf_stage.run import load_run
 
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
-PROBE_ITERS = 40  # iterations of the probe that times a method
+PROBE_ITERS = 40  # iterations of the probe that times our NeRF
+NERFACTO_PROBE_ITERS = 15  # and nerfacto, at several seconds an iteration on a CPU
 BUDGET_SLACK = 0.1  # a run may end this share of its wall-clock budget early
 HEADROOM = 1.5  # iterations planned beyond the probe's rate
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
@@ -203,10 +204,12 @@ def nerfacto_venv(venv: Path) -> Path:
 
 def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
     """Train nerfacto on ``data_dir`` for about ``seconds`` (its iterations timed by a
-    probe run); its renders of the held-out views, iterations and training seconds."""
+    probe run); its renders of the held-out views, iterations and training seconds (the
+    iterations times the median seconds of one in this run's log)."""
     bin_dir, renders = nerfacto_venv(venv), run_dir / "renders"
     if not (run_dir / "result.json").is_file():
-        per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "probe", 15)[1]
+        per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "probe",
+                                   NERFACTO_PROBE_ITERS)[1]
         shutil.rmtree(run_dir / "probe")
         iterations = max(2, int(seconds / per_iter))
         config, per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "train", iterations)
