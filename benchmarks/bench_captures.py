@@ -43,9 +43,9 @@ import argparse
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -159,11 +159,11 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, seconds: float) -> dict:
     ``HEADROOM``: iterations speed up as the occupancy grid prunes empty space); a run that
     ends more than ``BUDGET_SLACK`` early is trained once more with more iterations."""
     if not (run_dir / "checkpoint.pt").is_file():
-        probe = run_dir.with_name(run_dir.name + "-probe")
-        _train(data_dir, probe, strategy, PROBE_ITERS, 0.0)
-        log = load_run(probe).record.log
+        run_dir.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
+            _train(data_dir, Path(probe) / "run", strategy, PROBE_ITERS, 0.0)
+            log = load_run(Path(probe) / "run").record.log
         total = HEADROOM * seconds * (len(log) - 1) / (log[-1]["seconds"] - log[0]["seconds"])
-        shutil.rmtree(probe)
         for _ in range(2):
             output = _train(data_dir, run_dir, strategy, total, seconds / 60)
             (run_dir / "train.log").write_text(output)
@@ -206,22 +206,23 @@ def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
     """Train nerfacto on ``data_dir`` for about ``seconds`` (its iterations timed by a
     probe run); its renders of the held-out views, iterations and training seconds (the
     iterations times the median seconds of one in this run's log)."""
-    bin_dir, renders = nerfacto_venv(venv), run_dir / "renders"
+    bin_dir = nerfacto_venv(venv)
     if not (run_dir / "result.json").is_file():
-        per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "probe",
-                                   NERFACTO_PROBE_ITERS)[1]
-        shutil.rmtree(run_dir / "probe")
+        run_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir) as probe:
+            per_iter = _nerfacto_train(bin_dir, data_dir, Path(probe), NERFACTO_PROBE_ITERS)[1]
         iterations = max(2, int(seconds / per_iter))
         config, per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "train", iterations)
-        shutil.rmtree(renders, ignore_errors=True)
+        renders = config.parent / "renders"  # beside the config ns-train just made
         _run([bin_dir / "ns-eval", "--load-config", config, "--output-path",
               run_dir / "eval.json", "--render-output-path", renders], "ns-eval",
              TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD="1")  # its own checkpoint, pickled by torch<2.6
         (run_dir / "result.json").write_text(json.dumps(
-            {"iterations": iterations, "seconds": iterations * per_iter}))
+            {"iterations": iterations, "seconds": iterations * per_iter,
+             "renders": str(renders)}))
     result = json.loads((run_dir / "result.json").read_text())
     pairs = [np.asarray(Image.open(p).convert("RGB"), np.float32) / 255  # truth | render
-             for p in sorted(renders.glob("eval_img_*.png"))]
+             for p in sorted(Path(result.pop("renders")).glob("eval_img_*.png"))]
     result["render"] = np.stack([pair[:, pair.shape[1] // 2:] for pair in pairs])
     return result
 
