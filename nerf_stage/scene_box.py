@@ -23,6 +23,10 @@ from .cameras import Intrinsics, camera_rays
 
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
 OPAQUE_ALPHA = 1 - 0.5 / 255  # images whose pixels are all this opaque show no background
+#: An unbounded scene's cube grows until every camera lies within this many half sizes of its
+#: centre (infinity norm): a ray from a camera far outside it would march hundreds of steps
+#: through the shell before it reached the cube.
+CAMERA_REACH = 2.0
 
 
 @dataclass
@@ -91,11 +95,18 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     """A box around what the cameras (``poses``, one ``intrinsics`` each) see.
 
     Starts from the cube around the point nearest to all optical axes, with half
-    size 0.75 x the nearest camera's distance. ``space`` ``unbounded`` keeps that cube and
-    contracts the rest of space around it; ``box`` ends the scene there and, when the
+    size 0.75 x the nearest camera's distance. ``space`` ``unbounded`` keeps that cube, grown
+    where needed to bring every camera within ``CAMERA_REACH`` half sizes (cameras whose
+    axes do not meet, as on a walk down a street, can put that point beside one of
+    them), and contracts the rest of space around it; ``box`` ends the scene there and, when the
     images have transparent pixels, shrinks the box to the visual hull carved from them;
     ``auto`` is ``unbounded`` when every pixel is opaque (no view shows where the scene
     ends), else ``box`` (training may still probe both: ``trainer._scene_box``).
+
+    Raises
+    ------
+    InputError
+        If the cameras all stand at one point (a panorama: no box around a scene).
     """
     axes = -poses[:, :3, 2]
     eyes = poses[:, :3, 3]
@@ -105,6 +116,11 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     half = 0.75 * np.linalg.norm(eyes - centre, axis=1).min()
     opaque = bool(alpha.min() >= OPAQUE_ALPHA)
     unbounded = space == "unbounded" or (space == "auto" and opaque)
+    if unbounded:
+        half = max(half, np.abs(eyes - centre).max() / CAMERA_REACH)
+    if not half > 0:
+        raise InputError("the training cameras all stand at one point: a NeRF needs views "
+                         "from several places")
     box = SceneBox(centre, np.full(3, half), unbounded, unbounded and opaque)
     if unbounded or alpha.min() >= CARVE_ALPHA:
         return box

@@ -6,14 +6,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.cameras import rig_poses  # noqa: E402
+from nerf_stage.cameras import look_at, rig_poses  # noqa: E402
 from nerf_stage.contraction import FAR, contract, ray_interval, ray_points  # noqa: E402
 from nerf_stage.data import load_dataset  # noqa: E402
 from nerf_stage.fields.base import RaySampling  # noqa: E402
 from nerf_stage.occupancy import OccupancyGrid  # noqa: E402
 from nerf_stage.rendering import march_rays, scale_near_gradients  # noqa: E402
 from nerf_stage.run import load_run  # noqa: E402
-from nerf_stage.scene_box import scene_box  # noqa: E402
+from nerf_stage.scene_box import CAMERA_REACH, scene_box  # noqa: E402
+from palette_core.errors import InputError  # noqa: E402
 
 from .nerf_runs import tiny_config, trained  # noqa: E402
 
@@ -108,6 +109,14 @@ def test_opaque_images_make_an_unbounded_scene_and_transparent_ones_a_box(still_
     assert scene_box(ring, intrinsics[:1] * 8, np.ones((8, 2, 2))).unbounded
 
 
+def test_an_unbounded_box_reaches_every_camera_of_a_walk_down_a_street():
+    # parallel optical axes meet nowhere: the point nearest to them can sit beside one camera
+    poses = np.stack([look_at([0.0, 0.0, -z], [0.0, 0.0, -z - 10.0]) for z in range(8)])
+    box = scene_box(poses, None, np.ones((8, 2, 2)))
+    reach = np.abs(poses[:, :3, 3] - box.centre).max(1) / box.scale
+    assert box.unbounded and reach.max() <= CAMERA_REACH + 1e-9
+
+
 def test_an_unbounded_run_trains_saves_and_renders(still_life, tmp_path):
     run = trained(still_life, tiny_config(space="unbounded"), tmp_path / "run")
     assert run.box.unbounded and run.occupancy.contracted
@@ -157,3 +166,10 @@ def test_auto_keeps_the_box_for_transparent_images_unless_a_probe_fits_far_bette
     probed.clear()
     trained(still_life, tiny_config(space="box"), tmp_path / "box")
     assert not probed  # a chosen space is not probed
+
+
+def test_cameras_that_all_stand_at_one_point_are_refused():
+    poses = np.stack([look_at([0.0, 0.0, 0.0], [np.cos(a), 0.0, np.sin(a)])
+                      for a in np.linspace(0, 6, 8)])
+    with pytest.raises(InputError, match="one point"):
+        scene_box(poses, None, np.ones((8, 2, 2)))
