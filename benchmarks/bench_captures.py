@@ -31,7 +31,8 @@ the median time of its iterations in a probe run. Its held-out views are rendere
 
     python benchmarks/bench_captures.py ROOT [--out benchmarks/out/captures]
         [--captures fox lund sceaux monstree] [--minutes 20] [--downscale 4]
-        [--methods palette rgb nerfacto] [--nerfacto-venv benchmarks/out/nerfacto-venv]
+        [--methods palette rgb nerfacto] [--backbone grid|hash]
+        [--nerfacto-venv benchmarks/out/nerfacto-venv]
 
 Writes ``OUT/results.json`` and ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
 absolute error x4). Runs are cached in OUT by capture and method.
@@ -52,6 +53,7 @@ import numpy as np
 from bench_scenes import error_map, rendered
 from PIL import Image
 
+from nerf_stage.backbones import BACKBONES
 from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
 from nerf_stage.metrics import image_scores
@@ -150,8 +152,8 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
     return out
 
 
-def ours(data_dir: Path, run_dir: Path, strategy: str, seconds: float) -> dict:
-    """Train our NeRF on ``data_dir`` within ``seconds``; its renders of the held-out
+def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: float) -> dict:
+    """Train our NeRF (``backbone``) on ``data_dir`` within ``seconds``; its renders of the held-out
     views, iterations, training seconds and peak memory.
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget. The
@@ -161,11 +163,11 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, seconds: float) -> dict:
     if not (run_dir / "checkpoint.pt").is_file():
         run_dir.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
-            _train(data_dir, Path(probe) / "run", strategy, PROBE_ITERS, 0.0)
+            _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0)
             log = load_run(Path(probe) / "run").record.log
         total = HEADROOM * seconds * (len(log) - 1) / (log[-1]["seconds"] - log[0]["seconds"])
         for _ in range(2):
-            output = _train(data_dir, run_dir, strategy, total, seconds / 60)
+            output = _train(data_dir, run_dir, strategy, backbone, total, seconds / 60)
             (run_dir / "train.log").write_text(output)
             took = load_run(run_dir).record.log[-1]["seconds"]
             if took >= (1 - BUDGET_SLACK) * seconds:
@@ -178,14 +180,14 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, seconds: float) -> dict:
             "peak_gb": float(memory.group(1)) if memory else None}
 
 
-def _train(data_dir: Path, run_dir: Path, strategy: str, iterations: float,
+def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iterations: float,
            minutes: float) -> str:
     """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them,
     within ``minutes`` (0: no limit)."""
     total = max(2, round(iterations))
     pretrain = max(1, round(total * PRETRAIN_SHARE))
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
-                 "--strategy", strategy, "--pretrain-iters", str(pretrain),
+                 "--strategy", strategy, "--backbone", backbone, "--pretrain-iters", str(pretrain),
                  "--finetune-iters", str(total - pretrain), "--minutes", str(minutes)],
                 f"train {strategy}")
 
@@ -271,6 +273,9 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--minutes", type=float, default=20.0)
     parser.add_argument("--downscale", type=int, default=4)
+    parser.add_argument("--backbone", default="grid", choices=list(BACKBONES),
+                        help="our NeRFs' backbone (methods palette and rgb; results under "
+                             "palette-BACKBONE and rgb-BACKBONE unless grid)")
     parser.add_argument("--undistorted-beforehand", action="store_true",
                         help="benchmark NAME-undistorted beside each posed capture with a "
                              "lens: its photos undistorted by COLMAP, not by us")
@@ -294,12 +299,16 @@ def main() -> None:
         data = load_dataset(data_dir)
         truth = data.images[data.indices("test")]
         for method in args.methods:
-            run_dir, seconds = folder / method, 60 * args.minutes
+            seconds = 60 * args.minutes
             if method == "nerfacto":
-                result = nerfacto(data_dir, run_dir, seconds, args.nerfacto_venv.resolve())
+                result = nerfacto(data_dir, folder / method, seconds,
+                                  args.nerfacto_venv.resolve())
             else:
-                result = ours(data_dir, run_dir, "two-stage" if method == "palette" else "rgb",
-                              seconds)
+                if args.backbone != "grid":
+                    method = f"{method}-{args.backbone}"
+                result = ours(data_dir, folder / method,
+                              "two-stage" if method.startswith("palette") else "rgb",
+                              args.backbone, seconds)
             render = result.pop("render")
             result.update(image_scores(render, truth), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",

@@ -18,6 +18,18 @@ from palette_core.errors import InputError
 from .checks import MAX_ITERS, MAX_VOXELS, integers, positive
 
 
+def _check_head_and_occupancy(settings) -> None:
+    """InputError unless the head's and the occupancy schedule's settings that the grid and
+    hash backbones share are valid."""
+    if not isinstance(settings.deferred, bool):
+        raise InputError(f"deferred must be true or false, got {settings.deferred!r}")
+    integers(settings, 1, 16, "head_layers")
+    integers(settings, 1, MAX_ITERS, "occupancy_every")
+    integers(settings, 0, MAX_ITERS, "warmup_iters")
+    if settings.view_frequencies is not None:
+        integers(settings, 0, 16, "view_frequencies")
+
+
 @dataclass
 class GridConfig:
     """Settings of the ``grid`` backbone (dense voxel grids and a small MLP head)."""
@@ -52,16 +64,65 @@ class GridConfig:
     """Iterations before occupancy is refined from the learned density."""
 
     def __post_init__(self):
-        if not isinstance(self.deferred, bool):
-            raise InputError(f"deferred must be true or false, got {self.deferred!r}")
+        _check_head_and_occupancy(self)
         integers(self, 1, MAX_VOXELS, "voxels")
         integers(self, 1, 256, "features")
-        integers(self, 1, 16, "head_layers")
-        integers(self, 1, MAX_ITERS, "occupancy_every")
-        integers(self, 0, MAX_ITERS, "warmup_iters")
-        if self.view_frequencies is not None:
-            integers(self, 0, 16, "view_frequencies")
         positive(self, "lr", "network_lr", "step_voxels", "render_step_voxels")
+
+
+@dataclass
+class HashConfig:
+    """Settings of the ``hash`` backbone (a multi-resolution hash encoding and small MLPs;
+    nerfacto's field)."""
+
+    levels: int = 16
+    """Resolution levels of the encoding."""
+    features: int = 2
+    """Features a level."""
+    log2_entries: int = 19
+    """Table rows a level, as a power of two (levels with fewer vertices index them directly)."""
+    coarsest: int = 16
+    """Cells along the space's longest side at the coarsest level."""
+    finest: int = 2048
+    """Cells along it at the finest level."""
+    density_width: int = 64
+    """Hidden width of the density MLP."""
+    geometry_features: int = 15
+    """Outputs of the density MLP besides the density: the colour part's input."""
+    view_frequencies: int | None = 4
+    """As the grid backbone's."""
+    deferred: bool = True
+    """As the grid backbone's."""
+    head_layers: int = 2
+    """As the grid backbone's."""
+    lr: float = 1e-2
+    """Adam learning rate of the hash tables."""
+    network_lr: float = 1e-2
+    """Adam learning rate of the MLPs."""
+    samples: int = 128
+    """Ray-marching steps of training across the field's space (its longest side)."""
+    render_samples: int = 256
+    """Ray-marching steps of renders across it."""
+    occupancy_every: int = 16
+    """Iterations between updates of the occupancy grid from the learned density."""
+    warmup_iters: int = 64
+    """Iterations before occupancy is refined from the learned density."""
+
+    def __post_init__(self):
+        _check_head_and_occupancy(self)
+        integers(self, 1, 32, "levels")
+        integers(self, 1, 8, "features")
+        integers(self, 4, 24, "log2_entries")
+        integers(self, 1, 1 << 16, "coarsest", "finest", "density_width", "samples",
+                 "render_samples")
+        integers(self, 0, 256, "geometry_features")
+        if self.levels * self.features << self.log2_entries > MAX_VOXELS * 16:
+            raise InputError("levels x features x 2^log2_entries must be at most "
+                             f"{MAX_VOXELS * 16} table entries")
+        if self.finest < self.coarsest:
+            raise InputError(f"finest must be at least coarsest, got {self.finest} < "
+                             f"{self.coarsest}")
+        positive(self, "lr", "network_lr")
 
 
 @dataclass
@@ -95,6 +156,7 @@ class BackboneSpec:
 BACKBONES = {
     "grid": BackboneSpec(GridConfig, "fields.grid:GridField"),
     "mlp": BackboneSpec(MLPConfig, "fields.mlp:MLPField"),
+    "hash": BackboneSpec(HashConfig, "fields.hashgrid:HashField"),
 }
 
 #: The backbones' names, as ``TrainConfig.backbone`` takes them.

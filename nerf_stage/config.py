@@ -17,7 +17,7 @@ from pathlib import Path
 
 from palette_core.errors import InputError
 
-from .backbones import BACKBONES, Backbone, GridConfig, MLPConfig
+from .backbones import BACKBONES, Backbone, GridConfig, HashConfig, MLPConfig
 from .checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, member, positive
 
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
@@ -48,7 +48,8 @@ class TrainConfig:
     """How to train one weight NeRF (defaults suit the ``grid`` backbone on a CPU)."""
 
     backbone: Backbone = Backbone.GRID
-    """``grid`` (dense voxel grids, fast on CPUs) or ``mlp`` (the paper's vanilla NeRF)."""
+    """``grid`` (dense voxel grids, fast on CPUs), ``hash`` (a multi-resolution hash encoding:
+    detail at a photo's resolution) or ``mlp`` (the paper's vanilla NeRF)."""
     strategy: Strategy = Strategy.TWO_STAGE
     """``two-stage`` (RGB pretrain, then weights), ``traditional`` (weights from scratch),
     or ``rgb`` (an RGB NeRF only, the baseline)."""
@@ -116,6 +117,8 @@ class TrainConfig:
     """Settings of the ``grid`` backbone."""
     mlp: MLPConfig = field(default_factory=MLPConfig)
     """Settings of the ``mlp`` backbone."""
+    hash: HashConfig = field(default_factory=HashConfig)
+    """Settings of the ``hash`` backbone."""
 
     def __post_init__(self):
         self.backbone = member(Backbone, self.backbone, "backbone")

@@ -4,14 +4,16 @@ from dataclasses import replace
 
 import torch
 
-from nerf_stage.config import GridConfig, MLPConfig, TrainConfig
+from nerf_stage.config import GridConfig, HashConfig, MLPConfig, TrainConfig
 from nerf_stage.data import load_dataset
 from nerf_stage.trainer import train
 from palette_core.stack import read_stack
 
 TINY = {"occupancy_voxels": 6**3, "batch_rays": 64, "head_width": 16, "checkpoint_every": 2,
         "grid": GridConfig(voxels=12**3, warmup_iters=1, occupancy_every=1),
-        "mlp": MLPConfig(samples=8)}
+        "mlp": MLPConfig(samples=8),
+        "hash": HashConfig(levels=4, log2_entries=10, finest=32, density_width=16, samples=24,
+                           render_samples=48, warmup_iters=1, occupancy_every=1)}
 
 #: The paper's per-sample diffuse colours, which bake.
 PER_SAMPLE = replace(TINY["grid"], deferred=False, view_frequencies=None)

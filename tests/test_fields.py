@@ -6,9 +6,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.config import GridConfig, MLPConfig  # noqa: E402
+from nerf_stage.config import GridConfig, HashConfig, MLPConfig  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
 from nerf_stage.fields.grid import _corners, _Trilinear  # noqa: E402
+from nerf_stage.fields.hashgrid import HashEncoding, HashField  # noqa: E402
+
+#: A hash encoding whose two coarse levels index their vertices directly and whose finer
+#: two share hashed tables of 2^7 rows.
+SMALL_HASH = HashConfig(levels=4, features=2, log2_entries=7, coarsest=2, finest=16,
+                        density_width=8, geometry_features=3, head_layers=1)
 
 
 def small_grid(extent, voxels: int, features: int, head_width: int, kind="rgb", channels=3):
@@ -20,7 +26,8 @@ def small_grid(extent, voxels: int, features: int, head_width: int, kind="rgb", 
 
 @pytest.mark.parametrize("kind", ["additive", "transport"])
 @pytest.mark.parametrize("make", [lambda k, c: MLPField(None, MLPConfig(), 16, k, c),
-                                  lambda k, c: small_grid([1, 1, 0.5], 6**3, 4, 16, k, c)])
+                                  lambda k, c: small_grid([1, 1, 0.5], 6**3, 4, 16, k, c),
+                                  lambda k, c: HashField(torch.ones(3), SMALL_HASH, 16, k, c)])
 
 
 def test_output_activations(make, kind, rng):
@@ -85,3 +92,30 @@ def test_renders_read_the_feature_grid_as_it_is_after_each_step(rng):
     with torch.no_grad():
         assert torch.allclose(field.read(x)[1], field.train().read(x)[1])
 
+
+
+def test_a_hash_level_interpolates_its_vertices_trilinearly():
+    encoding = HashEncoding(torch.ones(3), SMALL_HASH)
+    assert encoding.direct_levels == 2
+    with torch.no_grad():
+        encoding.table.copy_(torch.randn_like(encoding.table))
+    n = int(encoding.resolution[0])  # the coarsest level: vertex (i, j, k) is row i n1^2 + j n1 + k
+    vertex = torch.tensor([[1, 0, 2], [2, 2, 1]])
+    x = vertex / n * 2 - 1
+    rows = vertex @ torch.tensor([(n + 1) ** 2, n + 1, 1])
+    assert torch.allclose(encoding(x)[:, :2], encoding.table[:, rows].t(), atol=1e-6)
+    boundary = torch.tensor([[0.0, 0.3, -0.2]])  # a cell face of every level
+    step = torch.tensor([[1e-4, 0.0, 0.0]])
+    assert torch.allclose(encoding(boundary - step), encoding(boundary + step), atol=1e-2)
+
+
+def test_hashed_levels_stay_in_their_own_rows():
+    encoding = HashEncoding(torch.ones(3), SMALL_HASH)
+    x = torch.rand(4096, 3) * 2 - 1
+    with torch.no_grad():
+        encoding.table.zero_()
+    encoding(x).sum().backward()
+    touched = torch.nonzero(encoding.table.grad.abs().sum(0)).flatten()
+    assert int(touched.max()) < encoding.table.shape[1]
+    last = int(encoding.offset[-1])
+    assert int((touched >= last).sum()) > 0 and int(touched[touched >= last].max()) < last + 128

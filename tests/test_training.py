@@ -14,14 +14,14 @@ from nerf_stage.cameras import Intrinsics  # noqa: E402
 from nerf_stage.config import TrainConfig  # noqa: E402
 from nerf_stage.data import join_weights, load_dataset  # noqa: E402
 from nerf_stage.metrics import psnr  # noqa: E402
-from nerf_stage.run import CHECKPOINT  # noqa: E402
+from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 from palette_core.stack import read_stack  # noqa: E402
 
 from .nerf_runs import PER_SAMPLE, TINY, tiny_config, trained  # noqa: E402
 
 
-@pytest.mark.parametrize("backbone", ["grid", "mlp"])
+@pytest.mark.parametrize("backbone", ["grid", "mlp", "hash"])
 def test_fine_tuning_leaves_the_density_part_bit_identical(cornell, tmp_path, backbone):
     two_stage = trained(cornell, tiny_config(backbone=backbone), tmp_path / "a")
     pretrained = trained(cornell, tiny_config(backbone=backbone, strategy="rgb",
@@ -32,6 +32,17 @@ def test_fine_tuning_leaves_the_density_part_bit_identical(cornell, tmp_path, ba
     assert not torch.equal(two_stage.field.colour_parameters()[0],
                            pretrained.field.colour_parameters()[0])
     assert two_stage.field.kind == "transport" and two_stage.field.output.out_features == 15
+
+
+def test_a_hash_run_learns_saves_and_renders_as_trained(still_life, tmp_path):
+    config = tiny_config(backbone="hash", strategy="rgb", pretrain_iters=30, finetune_iters=0,
+                         batch_rays=256)
+    run = trained(still_life, config, tmp_path / "run")
+    psnrs = [entry["psnr"] for entry in run.record.log]
+    assert np.mean(psnrs[-5:]) > np.mean(psnrs[:5]) + 1
+    poses = load_dataset(still_life).poses[:1]
+    loaded = load_run(tmp_path / "run", torch.device("cpu"))
+    assert all(np.array_equal(a, b) for a, b in zip(run.render(poses), loaded.render(poses)))
 
 
 def test_additive_renders_sum_to_the_opacity(still_life, tmp_path):

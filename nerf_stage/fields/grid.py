@@ -77,7 +77,8 @@ class _Trilinear(torch.autograd.Function):
         index, weight = ctx.saved_tensors
         channels = grad.shape[1]
         scattered = (grad.t().contiguous()[..., None] * weight).view(channels, -1)  # (C, P 8)
-        table = grad.new_zeros(channels, ctx.columns).index_add_(1, index.reshape(-1), scattered)
+        rows = index.reshape(-1).long()  # int32 rows (hash levels) scatter far slower
+        table = grad.new_zeros(channels, ctx.columns).index_add_(1, rows, scattered)
         return table, None, None
 
 
