@@ -29,7 +29,7 @@ MAX_LOG_DENSITY = 15.0  # exp() of more is clamped: a density no step needs
 
 class HashEncoding(nn.Module):
     """(P, 3) positions in the box [-extent, extent] -> (P, levels x features): each level a
-    grid of its own resolution, from ``coarsest`` to ``finest`` vertices along the box's
+    grid of its own resolution, from ``coarsest`` to ``finest`` cells along the box's
     longest side in a geometric series, whose vertices index a table of ``2^log2_entries``
     rows, directly where the level's vertices fit in it, else through the spatial hash;
     each level's features are interpolated trilinearly from its cell's eight vertices."""
@@ -43,8 +43,8 @@ class HashEncoding(nn.Module):
         offsets = torch.tensor([0, *sizes]).cumsum(0)
         self.register_buffer("reach", extent.max().float(), persistent=False)
         self.register_buffer("resolution", torch.tensor(resolution), persistent=False)
-        direct = [(n + 1) ** 3 <= entries for n in resolution]  # the coarse levels, first
-        self.direct_levels = sum(direct)
+        # the coarse levels, first, whose vertices fit in their table, index it directly
+        self.direct_levels = sum((n + 1) ** 3 <= entries for n in resolution)
         vertices = torch.tensor(resolution[:self.direct_levels])[:, None] + 1
         self.register_buffer("strides", (vertices ** torch.tensor([2, 1, 0])).int(),
                              persistent=False)
@@ -86,8 +86,8 @@ class HashEncoding(nn.Module):
 
 class HashField(Field):
     """A ``HashEncoding`` read by a density MLP (one hidden layer of ``density_width``) whose
-    first output is the log density and whose other ``geometry_features`` outputs are ``h``;
-    the colour part is the grid backbone's head: ``head_layers`` hidden layers of
+    first output is the log density (plus one) and whose other ``geometry_features`` outputs
+    are ``h``; the colour part is the grid backbone's head: ``head_layers`` hidden layers of
     ``head_width`` on ``h`` and the encoded view direction. The density part (encoding and
     density MLP) is what two-stage fine-tuning freezes.
 
