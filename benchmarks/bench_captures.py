@@ -153,8 +153,8 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
 
 
 def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: float) -> dict:
-    """Train our NeRF (``backbone``) on ``data_dir`` within ``seconds``; its renders of the held-out
-    views, iterations, training seconds and peak memory.
+    """Train our NeRF (``backbone``) on ``data_dir`` within ``seconds``; its renders of the
+    held-out views, iterations, training seconds and peak memory.
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget. The
     iterations, which set the learning-rate schedule, come from a probe run's rate (with
@@ -187,8 +187,9 @@ def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iteratio
     total = max(2, round(iterations))
     pretrain = max(1, round(total * PRETRAIN_SHARE))
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
-                 "--strategy", strategy, "--backbone", backbone, "--pretrain-iters", str(pretrain),
-                 "--finetune-iters", str(total - pretrain), "--minutes", str(minutes)],
+                 "--strategy", strategy, "--backbone", backbone,
+                 "--pretrain-iters", str(pretrain), "--finetune-iters", str(total - pretrain),
+                 "--minutes", str(minutes)],
                 f"train {strategy}")
 
 
@@ -304,11 +305,10 @@ def main() -> None:
                 result = nerfacto(data_dir, folder / method, seconds,
                                   args.nerfacto_venv.resolve())
             else:
-                if args.backbone != "grid":
+                if args.backbone != "grid":  # results and runs named by backbone too
                     method = f"{method}-{args.backbone}"
-                result = ours(data_dir, folder / method,
-                              "two-stage" if method.startswith("palette") else "rgb",
-                              args.backbone, seconds)
+                strategy = "two-stage" if method.startswith("palette") else "rgb"
+                result = ours(data_dir, folder / method, strategy, args.backbone, seconds)
             render = result.pop("render")
             result.update(image_scores(render, truth), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",
