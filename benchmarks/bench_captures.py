@@ -34,8 +34,9 @@ the median time of its iterations in a probe run. Its held-out views are rendere
         [--methods palette rgb nerfacto] [--backbone grid|hash]
         [--nerfacto-venv benchmarks/out/nerfacto-venv]
 
-Writes ``OUT/results.json`` and ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
-absolute error x4). Runs are cached in OUT by capture and method.
+Writes ``OUT/results.json``, ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
+absolute error x4) and ``OUT/NAME-curve.png`` (held-out PSNR against training time: our
+runs' checkpoints, nerfacto's end). Runs are cached in OUT by capture and method.
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ import re
 import subprocess
 import sys
 import tempfile
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +68,7 @@ PROBE_ITERS = 40  # iterations of the probe that times our NeRF
 NERFACTO_PROBE_ITERS = 15  # and nerfacto, at several seconds an iteration on a CPU
 BUDGET_SLACK = 0.1  # a run may end this share of its wall-clock budget early
 HEADROOM = 1.5  # iterations planned beyond the probe's rate
+CURVE_POINTS = 10  # checkpoints of a run scored for its held-out PSNR against time
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 #: A step's line of ns-train's log: step, then the iteration's time ("4 s, 612.345 ms").
@@ -154,12 +158,16 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
 
 def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: float) -> dict:
     """Train our NeRF (``backbone``) on ``data_dir`` within ``seconds``; its renders of the
-    held-out views, iterations, training seconds and peak memory.
+    held-out views, iterations, training seconds, peak memory and held-out PSNR against
+    training time (``curve``: seconds and dB of about ``CURVE_POINTS`` checkpoints).
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget. The
     iterations, which set the learning-rate schedule, come from a probe run's rate (with
     ``HEADROOM``: iterations speed up as the occupancy grid prunes empty space); a run that
     ends more than ``BUDGET_SLACK`` early is trained once more with more iterations."""
+    snapshots = run_dir.with_name(run_dir.name + "-snapshots")
+    data = load_dataset(data_dir)
+    test = data.indices("test")
     if not (run_dir / "checkpoint.pt").is_file():
         run_dir.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
@@ -167,29 +175,73 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
             log = load_run(Path(probe) / "run").record.log
         total = HEADROOM * seconds * (len(log) - 1) / (log[-1]["seconds"] - log[0]["seconds"])
         for _ in range(2):
-            output = _train(data_dir, run_dir, strategy, backbone, total, seconds / 60)
+            with Snapshots(run_dir / "checkpoint.pt", snapshots):
+                output = _train(data_dir, run_dir, strategy, backbone, total, seconds / 60,
+                                every=max(1, round(total / CURVE_POINTS)))
             (run_dir / "train.log").write_text(output)
             took = load_run(run_dir).record.log[-1]["seconds"]
             if took >= (1 - BUDGET_SLACK) * seconds:
                 break
             total *= seconds / took
-    run, data = load_run(run_dir), load_dataset(data_dir)
+    curve = []
+    for path in sorted(snapshots.glob("*.pt")):
+        with tempfile.TemporaryDirectory(dir=snapshots) as folder:
+            os.link(path, Path(folder) / "checkpoint.pt")
+            run = load_run(folder)
+        scores = image_scores(rendered(run, data, test), data.images[test])
+        curve.append((run.record.log[-1]["seconds"], scores["psnr"]))
+    run = load_run(run_dir)
     memory = re.search(r"peak memory ([\d.]+) GB", (run_dir / "train.log").read_text())
-    return {"render": rendered(run, data, data.indices("test")),
+    return {"render": rendered(run, data, test), "curve": curve,
             "iterations": len(run.record.log), "seconds": run.record.log[-1]["seconds"],
             "peak_gb": float(memory.group(1)) if memory else None}
 
 
+class Snapshots(threading.Thread):
+    """While in its ``with``, keeps each version of ``checkpoint`` that a training process
+    writes (atomically, by renaming) as a hard link in ``folder``, emptied first."""
+
+    def __init__(self, checkpoint: Path, folder: Path):
+        super().__init__(daemon=True)
+        self.checkpoint, self.folder, self.done = checkpoint, folder, threading.Event()
+
+    def __enter__(self):
+        self.folder.mkdir(parents=True, exist_ok=True)
+        for old in self.folder.glob("*.pt"):
+            old.unlink()
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.done.set()
+        self.join()
+
+    def run(self) -> None:
+        seen = None
+        while True:
+            finished = self.done.is_set()  # one last look after the process has ended
+            try:
+                inode = self.checkpoint.stat().st_ino
+                if inode != seen:
+                    os.link(self.checkpoint, self.folder / f"{time.monotonic_ns()}.pt")
+                    seen = inode
+            except FileNotFoundError:  # not written yet, or renamed over just now
+                pass
+            if finished:
+                return
+            self.done.wait(0.5)
+
+
 def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iterations: float,
-           minutes: float) -> str:
+           minutes: float, every: int = 500) -> str:
     """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them,
-    within ``minutes`` (0: no limit)."""
+    within ``minutes`` (0: no limit), with a checkpoint ``every`` so many iterations."""
     total = max(2, round(iterations))
     pretrain = max(1, round(total * PRETRAIN_SHARE))
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--backbone", backbone,
                  "--pretrain-iters", str(pretrain), "--finetune-iters", str(total - pretrain),
-                 "--minutes", str(minutes)],
+                 "--minutes", str(minutes), "--checkpoint-every", str(every)],
                 f"train {strategy}")
 
 
@@ -266,6 +318,25 @@ def _run(command: list, what: str, **env: str) -> str:
     return done.stdout + done.stderr
 
 
+def curve_picture(methods: dict, title: str, path: Path) -> None:
+    """Held-out PSNR against training seconds: a line per method with a ``curve``, a point
+    for each with only its end (nerfacto)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib import pyplot
+
+    figure, axes = pyplot.subplots(figsize=(6, 4))
+    for method, result in sorted(methods.items()):
+        seconds, psnr = zip(*(result.get("curve") or [(result["seconds"], result["psnr"])]))
+        axes.plot(np.divide(seconds, 60), psnr, "o-", label=method)
+    axes.set(xlabel="training minutes", ylabel="held-out PSNR (dB)", title=title)
+    axes.grid(alpha=0.3)
+    axes.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    pyplot.close(figure)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("root", type=Path, help="folder of captures, one folder per name")
@@ -322,6 +393,8 @@ def main() -> None:
                   flush=True)
             args.out.mkdir(parents=True, exist_ok=True)
             results_path.write_text(json.dumps(results, indent=1))
+        curve_picture(results[name], f"{name}, {results[name][method]['size']}, "
+                      f"{len(truth)} held-out views", args.out / f"{name}-curve.png")
 
 
 if __name__ == "__main__":
