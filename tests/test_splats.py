@@ -9,7 +9,6 @@ import trimesh
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage import splats as splat_module  # noqa: E402
 from nerf_stage.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.regions import Region  # noqa: E402
@@ -19,18 +18,19 @@ from nerf_stage.splats import (  # noqa: E402
     SH_C0,
     SPLAT_CACHE,
     Splats,
-    _draw,
-    _tensors,
     bake_run,
     cached_bake,
     covariances,
+    draw,
     matrix_quaternions,
     read_splats,
     refine,
     render_splats,
+    splat_tensors,
     write_ply,
     write_splats,
 )
+from nerf_stage.splats import baking as bake_module  # noqa: E402
 from palette_core.basis import Basis, basis_terms  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
@@ -82,7 +82,7 @@ def test_a_kept_bake_is_used_until_the_bake_changes(scene_run, tmp_path, monkeyp
     kept = (rundir / SPLAT_CACHE).stat().st_mtime_ns
     cached_bake(run, rundir, progress=False, refine_steps=1)
     assert (rundir / SPLAT_CACHE).stat().st_mtime_ns == kept
-    monkeypatch.setattr(splat_module, "BAKE_VERSION", BAKE_VERSION + 1)
+    monkeypatch.setattr(bake_module, "BAKE_VERSION", BAKE_VERSION + 1)
     assert cached_bake(run, rundir, progress=False,
                        refine_steps=1).source["bake_version"] == BAKE_VERSION + 1
     assert read_splats(rundir / SPLAT_CACHE).source["bake_version"] == BAKE_VERSION + 1
@@ -90,11 +90,11 @@ def test_a_kept_bake_is_used_until_the_bake_changes(scene_run, tmp_path, monkeyp
 
 def test_drawing_colours_is_recolouring_the_drawn_weights(hand_made, rng):
     edit = rng.uniform(0, 1, hand_made.palette.shape)
-    centres, covariance, weights, opacities = _tensors(hand_made)
-    drawn, covered = _draw(centres, covariance, weights, opacities, torch.as_tensor(POSE),
+    centres, covariance, weights, opacities = splat_tensors(hand_made)
+    drawn, covered = draw(centres, covariance, weights, opacities, torch.as_tensor(POSE),
                            CAMERA)
     colours = torch.as_tensor(hand_made.colours(edit))
-    painted, _ = _draw(centres, covariance, colours, opacities, torch.as_tensor(POSE), CAMERA)
+    painted, _ = draw(centres, covariance, colours, opacities, torch.as_tensor(POSE), CAMERA)
     terms = torch.as_tensor(basis_terms(edit, hand_made.basis, hand_made.order)).float()
     assert covered.max() > 0.9 and covered.min() >= 0 and covered.max() <= 1
     assert torch.allclose(painted, drawn @ terms, atol=1e-6)

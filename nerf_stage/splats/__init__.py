@@ -1,0 +1,39 @@
+"""3D Gaussians with palette weights (docs/splats.md): the model and its file (``model``),
+a differentiable rasteriser (``rasterise``), bakes of a weight NeRF (``baking``) and the PLY
+export (``export``)."""
+
+from .baking import (
+    BAKE_VERSION,
+    MAX_SPLATS,
+    REFINE_STEPS,
+    SPLAT_CACHE,
+    bake,
+    bake_run,
+    cached_bake,
+    refine,
+)
+from .export import SH_C0, write_ply
+from .model import SPLAT_FORMAT, Splats, covariances, matrix_quaternions, read_splats, write_splats
+from .rasterise import draw, render_splats, splat_tensors
+
+__all__ = [
+    "BAKE_VERSION",
+    "MAX_SPLATS",
+    "REFINE_STEPS",
+    "SH_C0",
+    "SPLAT_CACHE",
+    "SPLAT_FORMAT",
+    "Splats",
+    "bake",
+    "bake_run",
+    "cached_bake",
+    "covariances",
+    "draw",
+    "matrix_quaternions",
+    "read_splats",
+    "refine",
+    "render_splats",
+    "splat_tensors",
+    "write_ply",
+    "write_splats",
+]

@@ -1,0 +1,167 @@
+"""Gaussians with palette weights and their file (format ``palette-splats/1``,
+docs/formats.md): recolouring stays ``weights @ basis`` per splat (docs/splats.md).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from palette_core.basis import Basis, basis_terms, n_terms
+from palette_core.errors import InputError
+from palette_core.stack import NpzReader
+
+from ..regions import Region
+
+SPLAT_FORMAT = "palette-splats/1"
+
+
+@dataclass
+class Splats:
+    """Gaussians with palette weights.
+
+    Attributes
+    ----------
+    centres : (S, 3) float32
+        World positions.
+    scales : (S, 3) float32
+        Standard deviations along the axes of ``rotations``.
+    rotations : (S, 4) float32
+        Unit quaternions (w, x, y, z), local to world.
+    opacities : (S,) float32
+        Peak opacity in (0, 1).
+    weights : (S, M) float32
+        Palette weights of each splat's light (summing to one for the additive basis).
+    palette : (K, 3) float64
+    basis : Basis
+    order : int
+    background : (3,) float64
+    source : dict
+        The run it was baked from: its folder, checkpoint iteration and training time, the
+        cell size, the views used.
+    """
+
+    centres: np.ndarray
+    scales: np.ndarray
+    rotations: np.ndarray
+    opacities: np.ndarray
+    weights: np.ndarray
+    palette: np.ndarray
+    basis: Basis
+    order: int
+    background: np.ndarray
+    source: dict
+
+    def __len__(self) -> int:
+        return len(self.centres)
+
+    def covariances(self) -> np.ndarray:
+        """(S, 3, 3) float64 world covariances R diag(s^2) R^T."""
+        return covariances(torch.as_tensor(self.rotations, dtype=torch.float64),
+                           torch.as_tensor(self.scales, dtype=torch.float64)).numpy()
+
+    def colours(self, palette: np.ndarray | None = None,
+                regions: Sequence[Region] = ()) -> np.ndarray:
+        """(S, 3) float32 colour of every splat for ``palette`` (the run's by default); with
+        ``regions``, only the splats whose centres are inside one take it."""
+        palette = self.palette if palette is None else np.asarray(palette, np.float64)
+        terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
+        colours = np.clip(self.weights @ terms, 0, 1)
+        if regions:
+            outside = ~np.any([region.contains(self.centres) for region in regions], axis=0)
+            colours[outside] = self.colours()[outside]
+        return colours
+
+
+
+def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """(S, 3, 3) R diag(s^2) R^T from (S, 4) quaternions (w, x, y, z; any length) and (S, 3)
+    standard deviations s."""
+    w, x, y, z = (quaternions / quaternions.norm(dim=1, keepdim=True)).T
+    rotation = torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)
+    return (rotation * scales[:, None, :] ** 2) @ rotation.transpose(1, 2)
+
+
+def matrix_quaternions(r: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) rotation matrices -> (S, 4) unit quaternions (w, x, y, z), w >= 0."""
+    r = np.asarray(r, np.float64)
+    trace = np.trace(r, axis1=1, axis2=2)
+    candidates = np.stack([1 + trace, 1 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2],
+                           1 - r[:, 0, 0] + r[:, 1, 1] - r[:, 2, 2],
+                           1 - r[:, 0, 0] - r[:, 1, 1] + r[:, 2, 2]], 1)
+    best = np.argmax(candidates, 1)  # the largest component, divided by without loss
+    q = np.empty((len(r), 4))
+    for k in range(4):
+        at = best == k
+        m, c = r[at], np.sqrt(np.maximum(candidates[at, k], 1e-12)) * 2  # 4 |q_k|
+        if k == 0:
+            q[at] = np.stack([c / 4, (m[:, 2, 1] - m[:, 1, 2]) / c, (m[:, 0, 2] - m[:, 2, 0]) / c,
+                              (m[:, 1, 0] - m[:, 0, 1]) / c], 1)
+        elif k == 1:
+            q[at] = np.stack([(m[:, 2, 1] - m[:, 1, 2]) / c, c / 4, (m[:, 0, 1] + m[:, 1, 0]) / c,
+                              (m[:, 0, 2] + m[:, 2, 0]) / c], 1)
+        elif k == 2:
+            q[at] = np.stack([(m[:, 0, 2] - m[:, 2, 0]) / c, (m[:, 0, 1] + m[:, 1, 0]) / c, c / 4,
+                              (m[:, 1, 2] + m[:, 2, 1]) / c], 1)
+        else:
+            q[at] = np.stack([(m[:, 1, 0] - m[:, 0, 1]) / c, (m[:, 0, 2] + m[:, 2, 0]) / c,
+                              (m[:, 1, 2] + m[:, 2, 1]) / c, c / 4], 1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+
+def write_splats(splats: Splats, path: str | os.PathLike) -> None:
+    """Write a bake as NPZ format ``palette-splats/1``."""
+    np.savez(path, format=np.array(SPLAT_FORMAT), centres=splats.centres, scales=splats.scales,
+             rotations=splats.rotations, opacities=splats.opacities, weights=splats.weights,
+             palette=splats.palette, basis=np.array(str(splats.basis)),
+             order=np.array(splats.order), background=splats.background,
+             source=np.array(json.dumps(splats.source)))
+
+
+def read_splats(path: str | os.PathLike) -> Splats:
+    """Read and validate a bake.
+
+    Raises
+    ------
+    InputError
+        If the file is not a ``palette-splats/1`` NPZ, or a key is missing or malformed.
+    """
+    with NpzReader(Path(path), f"a splat bake ({SPLAT_FORMAT})") as npz:
+        if npz.text("format") != SPLAT_FORMAT:
+            raise InputError(f"{path} is not a splat bake (format {SPLAT_FORMAT})")
+        arrays = {key: npz.array(key, "f") for key in ("centres", "scales", "rotations",
+                                                       "opacities", "weights", "palette",
+                                                       "background")}
+        basis, order = Basis.parse(npz.text("basis")), int(npz.array("order", "iu"))
+        source = npz.json("source")
+    s = len(arrays["centres"])
+    m = n_terms(len(arrays["palette"]), basis, order)
+    shapes = {"centres": (s, 3), "scales": (s, 3), "rotations": (s, 4), "opacities": (s,),
+              "weights": (s, m), "background": (3,)}
+    if (any(arrays[k].shape != shape for k, shape in shapes.items())
+            or arrays["palette"].ndim != 2 or arrays["palette"].shape[1:] != (3,)
+            or not isinstance(source, dict)):
+        raise InputError(f"{path}: the splats' arrays have the wrong shapes")
+    if not all(np.isfinite(a).all() for a in arrays.values()):
+        raise InputError(f"{path}: the splats hold NaN or infinity")
+    if (arrays["scales"] <= 0).any() or not ((arrays["opacities"] > 0)
+                                             & (arrays["opacities"] < 1)).all():
+        raise InputError(f"{path}: splat scales must be positive and opacities in (0, 1)")
+    if (np.linalg.norm(arrays["rotations"], axis=1) < 1e-6).any():
+        raise InputError(f"{path}: a splat rotation is not a quaternion")
+    return Splats(arrays["centres"], arrays["scales"], arrays["rotations"], arrays["opacities"],
+                  arrays["weights"], arrays["palette"].astype(np.float64), basis, order,
+                  arrays["background"].astype(np.float64), source)
+

@@ -1,0 +1,178 @@
+"""A differentiable splat rasteriser in plain PyTorch (CPU and CUDA): EWA splatting of 3D
+Gaussians, sorted front to back per pixel, as 3D Gaussian splatting blends them.
+
+A view is a list of (pixel, splat, alpha) pairs: each splat's screen-space ellipse is
+walked row by row, pairs below 1/255 or behind ``MIN_TRANSMITTANCE`` of light are dropped,
+and each pixel's values are the sum of its pairs' transmittance x alpha x values.
+
+References
+----------
+B. Kerbl et al. 3D Gaussian splatting for real-time radiance field rendering. SIGGRAPH
+2023 (projection of the covariances, front-to-back blending, the low-pass filter).
+M. Zwicker et al. EWA splatting. IEEE TVCG 8(3), 2002.
+Z. Yu et al. Mip-Splatting: alias-free 3D Gaussian splatting. CVPR 2024 (the 2D filter).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..cameras import Intrinsics
+from .model import Splats
+
+#: Pixels^2 added to every projected covariance: Mip-Splatting's 2D filter. (3D Gaussian
+#: splatting's 0.3, which viser adds at the screen's resolution, let splats fitted at the
+#: training views' resolution lean on that blur to cover surfaces: holes where a browser
+#: draws them finer; docs/splats.md.)
+LOW_PASS = 0.1
+#: Pairs behind which less light than this is left are not drawn (3D Gaussian splatting's
+#: early stop): a pixel changes by less than this.
+MIN_TRANSMITTANCE = 1e-4
+MAX_ALPHA = 0.99  # no splat is more opaque than this at its peak (3D Gaussian splatting's)
+
+
+@torch.no_grad()
+def render_splats(splats: Splats, poses: np.ndarray, camera: Intrinsics,
+                  progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Draw a bake from (N, 4, 4) ``poses`` (OpenGL camera-to-world) with ``camera``.
+
+    Returns
+    -------
+    weights : (N, H, W, M) float32
+        Composited palette weights, premultiplied by opacity (a weight render).
+    opacity : (N, H, W) float32
+    """
+    tensors = splat_tensors(splats)
+    h, w = camera.height, camera.width
+    out_weights, out_opacity = [], []
+    for pose in tqdm(poses, desc="draw splats", unit="view", disable=not progress):
+        weights, opacity = draw(*tensors, torch.as_tensor(pose), camera)
+        out_weights.append(weights.view(h, w, -1).float().numpy())
+        out_opacity.append(opacity.view(h, w).float().numpy())
+    return np.stack(out_weights), np.stack(out_opacity)
+
+
+def splat_tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
+    """Centres, covariances, weights and opacities as float32 tensors."""
+    return (torch.as_tensor(splats.centres), torch.as_tensor(splats.covariances()).float(),
+            torch.as_tensor(splats.weights), torch.as_tensor(splats.opacities))
+
+
+def draw(centres, covariances, values, opacities, pose: torch.Tensor,
+          camera: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
+    """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
+    splats' parameters)."""
+    h, w = camera.height, camera.width
+    weights = values.new_zeros(h * w, values.shape[1])
+    opacity = values.new_zeros(h * w)
+    pairs = _pairs(centres, covariances, opacities, pose, camera)
+    if pairs is None:
+        return weights, opacity
+    pixel, splat, alpha = pairs
+    contribution = _transmittance(pixel, alpha) * alpha
+    weights = weights.index_add(0, pixel, contribution[:, None] * values.index_select(0, splat))
+    return weights, opacity.index_add(0, pixel, contribution)
+
+
+def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """(P,) light left in front of each pair (``pixel``, ``alpha``), sorted by pixel, then
+    front to back: a product over its pixel's earlier pairs, summed as logarithms in float64
+    (a view's running sum spans all of its pairs)."""
+    log_keep = torch.log1p(-alpha).double()
+    running = torch.cumsum(log_keep, 0)
+    starts = torch.ones_like(pixel, dtype=torch.bool)
+    starts[1:] = pixel[1:] != pixel[:-1]
+    first = torch.cummax(torch.where(starts, torch.arange(len(pixel), device=pixel.device), 0),
+                         0).values
+    before = running - log_keep - (running - log_keep).index_select(0, first)
+    return torch.exp(before).to(alpha.dtype)
+
+
+def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int = 32):
+    """The (pixel, splat, alpha) pairs of one view above 1/255 with at least
+    ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel, then front to
+    back; None when no splat shows."""
+    pose = pose.to(centres.dtype)
+    rotation, origin = pose[:3, :3], pose[:3, 3]
+    local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
+    depth = -local[:, 2]
+    index = torch.nonzero(depth > 1e-3)[:, 0]
+    local, depth = local.index_select(0, index), depth.index_select(0, index)
+    covariances = covariances.index_select(0, index)
+    fx, fy = camera.fx, camera.fy
+    u = camera.cx + fx * local[:, 0] / depth
+    v = camera.cy - fy * local[:, 1] / depth
+    jacobian = depth.new_zeros(len(depth), 2, 3)
+    jacobian[:, 0, 0] = fx / depth
+    jacobian[:, 0, 2] = fx * local[:, 0] / depth ** 2
+    jacobian[:, 1, 1] = -fy / depth
+    jacobian[:, 1, 2] = -fy * local[:, 1] / depth ** 2
+    transform = jacobian @ rotation.T
+    projected = transform @ covariances @ transform.transpose(1, 2)
+    a, b, c = projected[:, 0, 0] + LOW_PASS, projected[:, 0, 1], projected[:, 1, 1] + LOW_PASS
+    determinant = a * c - b * b
+    conic = torch.stack([c, -b, a], 1) / determinant[:, None]  # the inverse, per splat
+    # the box around the ellipse outside which a splat's alpha is below 1/255
+    opacities = opacities.index_select(0, index)
+    level = torch.sqrt(2 * torch.log((255 * opacities.detach()).clamp(min=1)))
+    rx = (level * torch.sqrt(a.detach())).clamp(max=reach)
+    ry = (level * torch.sqrt(c.detach())).clamp(max=reach)
+    x0 = (u.detach() - rx).floor().clamp(0, camera.width)
+    x1 = (u.detach() + rx).ceil().clamp(0, camera.width)
+    y0 = (v.detach() - ry).floor().clamp(0, camera.height)
+    y1 = (v.detach() + ry).ceil().clamp(0, camera.height)
+    shown = (x1 > x0) & (y1 > y0)
+    if not shown.any():
+        return None
+    drawn = torch.nonzero(shown)[:, 0]
+    drawn = drawn[torch.argsort(depth.detach()[drawn])]  # front to back: pairs come so
+    # each splat's projection (u, v, conic, opacity), gathered with gradients only for the
+    # pairs that show
+    table = torch.cat([u[:, None], v[:, None], conic, opacities[:, None]], 1)
+    # the rows of each splat's box, and in each row the pixels inside its ellipse
+    row_splat, py = _spans(drawn, y0.index_select(0, drawn).long(),
+                           y1.index_select(0, drawn).long())
+    row_u, row_v, ca, cb, cc, _ = table.detach().index_select(0, row_splat).T
+    row_x0, row_x1, row_level = torch.stack([x0, x1, level], 1).index_select(0, row_splat).T
+    dy = py + 0.5 - row_v
+    room = (cb * dy) ** 2 - ca * (cc * dy * dy - row_level ** 2)
+    half = torch.sqrt(room.clamp(min=0)) / ca
+    middle = row_u - 0.5 - cb * dy / ca  # pixel x + 0.5 - u = dx
+    first = torch.maximum(torch.ceil(middle - half), row_x0).long()
+    last = torch.minimum(torch.floor(middle + half), row_x1 - 1).long()
+    row, px = _spans(torch.arange(len(py), device=py.device), first,
+                     torch.where(room >= 0, torch.maximum(last + 1, first), first))
+    ids, py = row_splat.index_select(0, row), py.index_select(0, row)
+    with torch.no_grad():  # the pairs that show, sorted by pixel, then front to back
+        alpha = _alpha(table.index_select(0, ids), px, py)
+        visible = torch.nonzero(alpha >= 1 / 255)[:, 0]
+        pixel = py.index_select(0, visible) * camera.width + px.index_select(0, visible)
+        pixel, order = torch.sort(pixel, stable=True)  # by pixel, still front to back
+        visible = visible.index_select(0, order)
+        kept = _transmittance(pixel, alpha.index_select(0, visible)) >= MIN_TRANSMITTANCE
+        shown, pixel = visible[kept], pixel[kept]
+    ids, px, py = ids.index_select(0, shown), px.index_select(0, shown), py.index_select(0, shown)
+    return pixel, index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py)
+
+
+def _spans(owners: torch.Tensor, start: torch.Tensor,
+           stop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each of ``owners`` (N,) with the whole numbers from its ``start`` to its ``stop``
+    (N,; excluded), in order: (owner, number) pairs as two (P,) tensors."""
+    count = stop - start
+    which = torch.repeat_interleave(torch.arange(len(owners), device=owners.device), count)
+    offset = torch.arange(len(which), device=owners.device) - (torch.cumsum(count, 0)
+                                                              - count).index_select(0, which)
+    return owners.index_select(0, which), start.index_select(0, which) + offset
+
+
+def _alpha(pairs: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """(P,) opacity at pixels (``px``, ``py``) of splats projected as ``pairs`` (P, 6): centre
+    u, v, inverse covariance (a, b, c), peak opacity."""
+    dx = px + 0.5 - pairs[:, 0]
+    dy = py + 0.5 - pairs[:, 1]
+    power = -0.5 * (pairs[:, 2] * dx * dx + 2 * pairs[:, 3] * dx * dy + pairs[:, 4] * dy * dy)
+    return torch.clamp(pairs[:, 5] * torch.exp(power), max=MAX_ALPHA)
+
