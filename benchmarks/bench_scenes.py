@@ -89,7 +89,7 @@ def rendered(run, data, ids) -> np.ndarray:
     """(N, H, W, 3) colours of the run at the dataset's views ``ids`` (through the weights)."""
     values, opacity = run.render(data.poses[ids])
     background = np.asarray(run.config.background)
-    if run.field.kind == RGB:
+    if run.kind == RGB:
         return np.clip(values + (1 - opacity[..., None]) * background, 0, 1)
     return WeightRender(values, opacity, [data.names[i] for i in ids], run.palette, run.basis,
                         run.order, background, {}).recolor()

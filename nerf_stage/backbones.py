@@ -17,6 +17,8 @@ from palette_core.errors import InputError
 
 from .checks import MAX_ITERS, MAX_VOXELS, integers, positive
 
+MAX_SPLATS = 10_000_000  # splats a ``splats`` run may hold at most
+
 
 def _check_head_and_occupancy(settings) -> None:
     """InputError unless the head's and the occupancy schedule's settings that the grid and
@@ -139,24 +141,109 @@ class MLPConfig:
         positive(self, "network_lr")
 
 
+@dataclass
+class SplatConfig:
+    """Settings of the ``splats`` backbone (3D Gaussians trained from the images, one image
+    an iteration; 3D Gaussian splatting's recipe, ``splats.backbone``)."""
+
+    initial: int = 20_000
+    """Splats at the start (at most one for four pixels of a training image), at random in
+    the scene box (and in the contracted shell around an unbounded one: far splats for
+    what lies beyond)."""
+    max_splats: int = 300_000
+    """Densification never grows the splats beyond this."""
+    sh_degree: int = 3
+    """Degree of the spherical harmonics of the view-dependent colour (RGB stage) and of the
+    weights' view-dependent residual (palette stage); 0: diffuse."""
+    sh_every: int = 1000
+    """Iterations between raising the degree in use by one, from 0 (3D Gaussian
+    splatting's schedule)."""
+    ssim_weight: float = 0.2
+    """Weight of 1 - SSIM beside L1 in the RGB stage's loss."""
+    reach: int = 64
+    """Pixels from its centre that a splat is drawn to at most."""
+    refine_start: int = 500
+    """Iteration of the first densification."""
+    refine_stop: float = 0.5
+    """Densification stops at this share of the RGB stage's iterations."""
+    refine_every: int = 100
+    """Iterations between densifications."""
+    reset_every: int = 3000
+    """Iterations between resets of every splat's opacity to twice ``prune_opacity``."""
+    grow_grad2d: float = 2e-4
+    """Mean screen-space gradient (normalised image units) above which a splat is cloned
+    (small) or split (large)."""
+    grow_scale: float = 0.01
+    """Largest standard deviation, as a share of the cameras' extent, of a splat cloned
+    rather than split."""
+    prune_opacity: float = 0.005
+    """Splats less opaque than this are removed."""
+    prune_scale: float = 0.1
+    """Splats larger than this share of the cameras' extent are removed (after the first
+    opacity reset)."""
+    means_lr: float = 1.6e-4
+    """Adam learning rate of the centres, times the cameras' extent; it decays to a
+    hundredth by the RGB stage's end."""
+    scales_lr: float = 5e-3
+    """Adam learning rate of the log standard deviations."""
+    quats_lr: float = 1e-3
+    """Adam learning rate of the rotations."""
+    opacities_lr: float = 5e-2
+    """Adam learning rate of the opacity logits."""
+    colours_lr: float = 2.5e-3
+    """Adam learning rate of the degree-0 colour (RGB stage); degrees above it take a
+    twentieth."""
+    weights_lr: float = 1e-2
+    """Adam learning rate of the palette weights (palette stage); their view-dependent
+    residual takes a twentieth."""
+
+    def __post_init__(self):
+        integers(self, 1, MAX_SPLATS, "initial", "max_splats")
+        integers(self, 0, 3, "sh_degree")
+        integers(self, 1, MAX_ITERS, "sh_every", "refine_every", "reset_every")
+        integers(self, 0, MAX_ITERS, "refine_start")
+        integers(self, 1, 4096, "reach")
+        if self.initial > self.max_splats:
+            raise InputError(f"initial splats must be at most max_splats, got {self.initial} > "
+                             f"{self.max_splats}")
+        if not 0 <= self.ssim_weight <= 1 or not 0 <= self.refine_stop <= 1:
+            raise InputError("ssim_weight and refine_stop must be in [0, 1], got "
+                             f"{self.ssim_weight} and {self.refine_stop}")
+        positive(self, "grow_grad2d", "grow_scale", "prune_opacity", "prune_scale", "means_lr",
+                 "scales_lr", "quats_lr", "opacities_lr", "colours_lr", "weights_lr")
+        if self.prune_opacity >= 0.5:
+            raise InputError(f"prune_opacity must be below 0.5, got {self.prune_opacity}")
+
+
 @dataclass(frozen=True)
 class BackboneSpec:
-    """A backbone: its settings' dataclass and its field as ``"module:Class"`` in
-    ``nerf_stage``."""
+    """A backbone: its settings' dataclass and its model in ``nerf_stage``: a ``Field`` as
+    ``"module:Class"``, trained and loaded by ``trainer`` and ``run``; or, for a model that
+    is not a field, ``"module"``, which has its own ``train`` and ``load_run`` with the
+    signatures of ``trainer.train`` and ``run.load_run`` (``splats.backbone``)."""
 
     settings: type
     target: str
+
+    @property
+    def is_field(self) -> bool:
+        return ":" in self.target
 
     def field_class(self) -> type:
         """The ``Field`` subclass (imports torch)."""
         module, name = self.target.split(":")
         return getattr(importlib.import_module(f"nerf_stage.{module}"), name)
 
+    def module(self):
+        """The module of a backbone that is not a field (imports torch)."""
+        return importlib.import_module(f"nerf_stage.{self.target}")
+
 
 BACKBONES = {
     "grid": BackboneSpec(GridConfig, "fields.grid:GridField"),
     "mlp": BackboneSpec(MLPConfig, "fields.mlp:MLPField"),
     "hash": BackboneSpec(HashConfig, "fields.hashgrid:HashField"),
+    "splats": BackboneSpec(SplatConfig, "splats.backbone"),
 }
 
 #: The backbones' names, as ``TrainConfig.backbone`` takes them.

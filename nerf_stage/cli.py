@@ -287,7 +287,7 @@ def _train(args) -> int:
     limited = " (the --minutes limit)" if len(log) < config.total_iters else ""
     print(f"trained {config.backbone} ({config.strategy}) for {len(log)} iterations in "
           f"{log[-1]['seconds']:.0f} s{limited}, last batch PSNR {log[-1]['psnr']:.2f} dB, "
-          f"peak memory {peak_memory(run.occupancy.extent.device)}")
+          f"peak memory {peak_memory(run.device)}")
     print(f"wrote {rundir / CHECKPOINT}; next: {PROG} render {rundir} -o DIR")
     return 0
 
@@ -350,7 +350,7 @@ def _eval(args) -> int:
     dataset = run.dataset()
     scores = evaluate(run, dataset, edit)
     rec = scores["reconstruction"]
-    what = "RGB NeRF" if run.field.kind == RGB else "RGB through the weights"
+    what = "RGB NeRF" if run.kind == RGB else "RGB through the weights"
     print(f"{scores['views']} test views, {scores['seconds_per_view']:.2f} s per view")
     print(f"{what}: PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f}")
     if "off_ring" in scores:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from palette_core.errors import InputError
 
-from .backbones import BACKBONES, Backbone, GridConfig, HashConfig, MLPConfig
+from .backbones import BACKBONES, Backbone, GridConfig, HashConfig, MLPConfig, SplatConfig
 from .checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, member, positive
 
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
@@ -49,7 +49,8 @@ class TrainConfig:
 
     backbone: Backbone = Backbone.GRID
     """``grid`` (dense voxel grids, fast on CPUs), ``hash`` (a multi-resolution hash encoding:
-    detail at a photo's resolution) or ``mlp`` (the paper's vanilla NeRF)."""
+    detail at a photo's resolution), ``mlp`` (the paper's vanilla NeRF) or ``splats`` (3D
+    Gaussians, the model the studio and the PLY show as trained)."""
     strategy: Strategy = Strategy.TWO_STAGE
     """``two-stage`` (RGB pretrain, then weights), ``traditional`` (weights from scratch),
     or ``rgb`` (an RGB NeRF only, the baseline)."""
@@ -119,6 +120,8 @@ class TrainConfig:
     """Settings of the ``mlp`` backbone."""
     hash: HashConfig = field(default_factory=HashConfig)
     """Settings of the ``hash`` backbone."""
+    splats: SplatConfig = field(default_factory=SplatConfig)
+    """Settings of the ``splats`` backbone."""
 
     def __post_init__(self):
         self.backbone = member(Backbone, self.backbone, "backbone")

@@ -151,7 +151,7 @@ def render_weights(run: Run, names: list[str], poses: np.ndarray, source: dict,
     """Render the run's weights for ``poses`` (runs the network), with the training
     camera unless ``intrinsics`` gives one or one a view (``Run.render``); ``samples``
     keeps the samples behind each pixel (for ``WeightRender.with_regions``)."""
-    if run.field.kind == RGB:
+    if run.kind == RGB:
         raise InputError("this run was trained on RGB only (strategy 'rgb'): it has no weights")
     weights, opacity, *kept = run.render(poses, progress, intrinsics, samples)
     return WeightRender(weights, opacity, names, run.palette, run.basis, run.order,

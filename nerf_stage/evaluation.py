@@ -63,7 +63,7 @@ def evaluate(run: Run, dataset, edit: np.ndarray | None = None,
     seconds = (time.perf_counter() - start) / len(poses)
     background = np.asarray(run.config.background, np.float64)
     scores = {"views": int((~off).sum()), "seconds_per_view": seconds}
-    if run.field.kind == RGB:
+    if run.kind == RGB:
         rgb = np.clip(values + (1 - opacity[..., None]) * background, 0, 1)
         return {**scores, **_split_scores(rgb, truth, off)}
     ring = [name for name, away in zip(names, off) if not away]

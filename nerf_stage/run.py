@@ -20,6 +20,7 @@ from palette_core.errors import InputError, first_line
 from palette_core.outputs import atomic_outputs
 
 from .appearance import Appearance
+from .backbones import BACKBONES
 from .cameras import Intrinsics
 from .config import BAKE_FACTOR, TrainConfig
 from .data import Dataset, check_downscale, load_dataset
@@ -33,7 +34,7 @@ CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
 RENDER_CHUNK = 1 << 15  # rays per forward pass when rendering whole views
 _CHECKPOINT_KEYS = ("iteration", "config", "field", "output", "optimisers", "generator",
-                    "occupancy", "box", "intrinsics", "palette", "basis", "order", "meta", "log")
+                    "box", "intrinsics", "palette", "basis", "order", "meta", "log")
 
 
 def default_device() -> torch.device:
@@ -76,51 +77,75 @@ class RunRecord:
 
 
 @dataclass
-class Run:
-    """A trained (or training) weight NeRF and what is needed to use it.
+class RunBase:
+    """What every trained (or training) run has, whatever its backbone.
 
     Attributes
     ----------
     config : TrainConfig
-    field : Field
-    occupancy : OccupancyGrid
     box : SceneBox
     intrinsics : Intrinsics
     palette : (K, 3) float64
     basis : Basis
-        The field outputs RGB while ``field.kind`` is ``fields.RGB``.
+        The model outputs RGB while ``kind`` is ``fields.RGB``.
     order : int
     record : RunRecord
-    appearance : Appearance or None
-        The training images' colour transforms (``TrainConfig.appearance``), while training.
     """
 
     config: TrainConfig
-    field: Field
-    occupancy: OccupancyGrid
     box: SceneBox
     intrinsics: Intrinsics
     palette: np.ndarray
     basis: Basis
     order: int
     record: RunRecord
-    appearance: Appearance | None = None
 
     @property
     def terms(self) -> np.ndarray:
         """(M, 3) colour of each weight channel for the run's palette."""
         return basis_terms(self.palette, self.basis, self.order)
 
-    @property
-    def sampling(self) -> RaySampling:
-        """How training samples rays."""
-        return replace(self.field.sampling(), sky=self.box.sky)
-
     def dataset(self) -> Dataset:
         """The run's dataset, read as training read it."""
         record = self.record
         return load_dataset(record.dataset, self.config.background, record.frames_outside,
                             record.downscale)
+
+
+@dataclass
+class Run(RunBase):
+    """A weight NeRF whose model is a radiance field (``Field``), and what is needed to use
+    it (``RunBase``).
+
+    Attributes
+    ----------
+    field : Field
+    occupancy : OccupancyGrid
+    appearance : Appearance or None
+        The training images' colour transforms (``TrainConfig.appearance``), while training.
+    """
+
+    field: Field | None = None
+    occupancy: OccupancyGrid | None = None
+    appearance: Appearance | None = None
+
+    @property
+    def kind(self) -> str:
+        """What the field outputs: ``fields.RGB`` or the weights' basis."""
+        return self.field.kind
+
+    @property
+    def device(self) -> torch.device:
+        return self.occupancy.extent.device
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) world corners of what the run found occupied (``OccupancyGrid.bounds``)."""
+        return self.box.centre + self.box.scale * self.occupancy.bounds()
+
+    @property
+    def sampling(self) -> RaySampling:
+        """How training samples rays."""
+        return replace(self.field.sampling(), sky=self.box.sky)
 
     @property
     def render_sampling(self) -> RaySampling:
@@ -237,16 +262,27 @@ def check_rundir(rundir: Path, resume: bool, force: bool) -> None:
 
 
 def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator) -> None:
-    """Write the run, its optimisers and random state to ``path``, atomically."""
+    """Write the field run, its optimisers and random state to ``path``, atomically."""
+    extra = {"occupancy": run.occupancy.state_dict()}
+    if run.appearance is not None:
+        extra["appearance"] = run.appearance.state_dict()
+    write_checkpoint(run, path, run.field.state_dict(), run.field.output_state(),
+                     [o.state_dict() for o in optimisers], generator, extra)
+
+
+def write_checkpoint(run: RunBase, path: Path, model: dict, output: dict, optimisers: list,
+                     generator: torch.Generator, extra: dict) -> None:
+    """Write a run's checkpoint atomically: its ``model``'s tensors (as ``field``), what it
+    outputs, its optimisers' states and random state, what every run records, and the
+    backbone's ``extra`` keys (docs/formats.md)."""
     record = run.record
     state = {
         "iteration": record.iteration,
         "config": run.config.to_dict(),
-        "field": run.field.state_dict(),
-        "output": run.field.output_state(),
-        "optimisers": [o.state_dict() for o in optimisers],
+        "field": model,
+        "output": output,
+        "optimisers": optimisers,
         "generator": generator.get_state(),
-        "occupancy": run.occupancy.state_dict(),
         "box": run.box.to_dict(),
         "intrinsics": run.intrinsics.__dict__,
         "palette": run.palette.tolist(),
@@ -256,9 +292,8 @@ def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator
                  "channels": record.channels, "stack_meta": record.stack_meta,
                  "frames_outside": record.frames_outside, "downscale": record.downscale},
         "log": record.log,
+        **extra,
     }
-    if run.appearance is not None:
-        state["appearance"] = run.appearance.state_dict()
     with atomic_outputs(force=True) as stage:  # the run's own checkpoint
         torch.save(state, stage(path))
 
@@ -312,8 +347,9 @@ def restore(run: Run, state: dict) -> None:
     run.record.iteration, run.record.log = saved.iteration, saved.log
 
 
-def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> Run:
-    """The trained run in ``rundir``.
+def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> RunBase:
+    """The trained run in ``rundir``: a ``Run``, or what a backbone that is not a field
+    loads (``backbones.BackboneSpec``).
 
     Raises
     ------
@@ -325,6 +361,9 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
     state = read_checkpoint(path)
     try:
         config = TrainConfig.from_dict(state["config"], str(path))
+        spec = BACKBONES[config.backbone]
+        if not spec.is_field:
+            return spec.module().load_run(state, str(path), device)
         intrinsics = Intrinsics.from_dict(state["intrinsics"], str(path))
         palette = np.array(state["palette"], np.float64)
         if (palette.ndim != 2 or palette.shape[1:] != (3,) or len(palette) == 0
@@ -339,8 +378,8 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
         box = box_from_dict(state["box"], str(path))
         field = make_field(config, box, output["kind"], output["channels"])
         occupancy = OccupancyGrid.over(box, config.occupancy_voxels)
-        run = Run(config, field, occupancy, box, intrinsics, palette, basis,
-                  int(state["order"]), run_record(state))
+        run = Run(config, box, intrinsics, palette, basis, int(state["order"]),
+                  run_record(state), field, occupancy)
         restore(run, state)
         run.field.to(device)
         run.occupancy.to(device)

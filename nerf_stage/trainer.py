@@ -33,6 +33,7 @@ from palette_core.errors import InputError
 from palette_core.stack import WeightStack
 
 from .appearance import Appearance
+from .backbones import BACKBONES
 from .config import Space, Strategy, TrainConfig
 from .data import Dataset, join_weights
 from .fields import RGB, make_field
@@ -66,7 +67,8 @@ MIN_START_WEIGHT = 1e-4
 def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
           resume: bool = False, force: bool = False, weights_path: str = "",
           progress: bool = True, device: torch.device | None = None) -> Run:
-    """Train (or resume) a weight NeRF and write its run directory.
+    """Train (or resume) a weight NeRF and write its run directory (a backbone that is not a
+    field trains itself: ``backbones.BackboneSpec``).
 
     Parameters
     ----------
@@ -86,6 +88,10 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         If the weights do not match the dataset, the run folder is not as ``resume`` and
         ``force`` say, or the checkpoint does not match the config.
     """
+    spec = BACKBONES[config.backbone]
+    if not spec.is_field:
+        return spec.module().train(config, dataset, stack, rundir, resume, force, weights_path,
+                                   progress, device)
     device = device or default_device()
     rundir = Path(rundir)
     check_rundir(rundir, resume, force)
@@ -276,8 +282,8 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
                        stack_meta=stack.meta, frames_outside=dataset.frames_outside,
                        downscale=dataset.downscale)
     appearance = Appearance(len(train_ids)).to(device) if config.appearance else None
-    return Run(config, field.to(device), occupancy.to(device), box, dataset.intrinsics,
-               np.asarray(stack.palette, np.float64), stack.basis, stack.order, record,
+    return Run(config, box, dataset.intrinsics, np.asarray(stack.palette, np.float64),
+               stack.basis, stack.order, record, field.to(device), occupancy.to(device),
                appearance)
 
 

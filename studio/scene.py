@@ -60,7 +60,7 @@ class SceneTarget:
     home : (4, 4) float64 or None
         The first training camera, where a new tab starts.
     bounds : (2, 3) float64
-        World corners of what the run found occupied (``OccupancyGrid.bounds``).
+        World corners of what the run found occupied (``Run.bounds``).
     centre : (3,) float64
         Their middle: where the camera looks and turntables turn.
     """
@@ -72,7 +72,7 @@ class SceneTarget:
         self.run = run
         self.path = path
         self.splats, self.home = splats, home
-        self.bounds = run.box.centre + run.box.scale * run.occupancy.bounds()
+        self.bounds = run.bounds()
         self.centre = self.bounds.mean(0)
         self._views: OrderedDict[tuple, WeightRender] = OrderedDict()
         self._lock = threading.Lock()  # one render at a time, whichever tab asks
@@ -83,7 +83,7 @@ class SceneTarget:
         ``cached_bake``) unless not ``bake``. A run that does not bake (still fog) opens
         with the network only, and says why on stderr."""
         run = load_run(path)
-        if run.field.kind == RGB:
+        if run.kind == RGB:
             raise InputError(f"{path} was trained on RGB only (strategy 'rgb'): it has no "
                              "weights to recolour")
         dataset = run.dataset()

@@ -36,7 +36,7 @@ from palette_core.outputs import atomic_outputs
 
 from ..cameras import Intrinsics
 from ..fields import RGB
-from ..run import default_device, load_run, run_source
+from ..run import Run, default_device, load_run, run_source
 from .model import Splats, covariances, matrix_quaternions, read_splats, write_splats
 from .rasterise import MAX_ALPHA, draw
 
@@ -96,7 +96,9 @@ def bake_run(rundir: str | os.PathLike, max_splats: int = MAX_SPLATS,
     its dataset (read, unless ``dataset`` is given; ``bake``); its ``source`` says which run
     and checkpoint (``run_source``)."""
     run = run or load_run(rundir)
-    if run.field.kind == RGB:
+    if not isinstance(run, Run):  # a splat run: its own splats as trained, not a bake
+        return run.splats(_bake_source(run, rundir))
+    if run.kind == RGB:
         raise InputError(f"{rundir} was trained on RGB only (strategy 'rgb'): it has no "
                          "weights to bake")
     dataset = dataset or run.dataset()

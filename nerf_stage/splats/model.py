@@ -83,13 +83,18 @@ class Splats:
 def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """(S, 3, 3) R diag(s^2) R^T from (S, 4) quaternions (w, x, y, z; any length) and (S, 3)
     standard deviations s."""
+    rotation = rotation_matrices(quaternions)
+    return (rotation * scales[:, None, :] ** 2) @ rotation.transpose(1, 2)
+
+
+def rotation_matrices(quaternions: torch.Tensor) -> torch.Tensor:
+    """(S, 3, 3) rotation matrices of (S, 4) quaternions (w, x, y, z; any length)."""
     w, x, y, z = (quaternions / quaternions.norm(dim=1, keepdim=True)).T
-    rotation = torch.stack([
+    return torch.stack([
         torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
         torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
         torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
     ], 1)
-    return (rotation * scales[:, None, :] ** 2) @ rotation.transpose(1, 2)
 
 
 def matrix_quaternions(r: np.ndarray) -> np.ndarray:

@@ -60,18 +60,29 @@ def splat_tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
             torch.as_tensor(splats.weights), torch.as_tensor(splats.opacities))
 
 
-def draw(centres, covariances, values, opacities, pose: torch.Tensor,
-          camera: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
+def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: Intrinsics,
+         reach: int = 32, info: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
-    splats' parameters)."""
+    splats' parameters), each splat drawn at most ``reach`` pixels from its centre.
+
+    With an ``info`` dict, it receives what densification needs: ``means2d`` (F, 2), the
+    pixel positions of the F splats in front of the camera (gradients retained), their
+    indices ``front`` (F,), and ``drawn`` (D,), the splats with a pixel in the view; and
+    ``pairs``: (P,) pixel, splat and contribution (transmittance x alpha) of every pair
+    drawn, by pixel, front to back."""
     h, w = camera.height, camera.width
     weights = values.new_zeros(h * w, values.shape[1])
     opacity = values.new_zeros(h * w)
-    pairs = _pairs(centres, covariances, opacities, pose, camera)
+    pairs = _pairs(centres, covariances, opacities, pose, camera, reach, info)
+    if info is not None:
+        info["drawn"] = (torch.unique(pairs[1]) if pairs is not None
+                         else torch.zeros(0, dtype=torch.long, device=centres.device))
     if pairs is None:
         return weights, opacity
     pixel, splat, alpha = pairs
     contribution = _transmittance(pixel, alpha) * alpha
+    if info is not None:
+        info["pairs"] = pixel, splat, contribution.detach()
     weights = weights.index_add(0, pixel, contribution[:, None] * values.index_select(0, splat))
     return weights, opacity.index_add(0, pixel, contribution)
 
@@ -90,10 +101,11 @@ def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     return torch.exp(before).to(alpha.dtype)
 
 
-def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int = 32):
+def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int,
+           info: dict | None):
     """The (pixel, splat, alpha) pairs of one view above 1/255 with at least
     ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel, then front to
-    back; None when no splat shows."""
+    back; None when no splat shows (``draw``'s ``info`` filled on the way)."""
     pose = pose.to(centres.dtype)
     rotation, origin = pose[:3, :3], pose[:3, 3]
     local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
@@ -104,6 +116,11 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     fx, fy = camera.fx, camera.fy
     u = camera.cx + fx * local[:, 0] / depth
     v = camera.cy - fy * local[:, 1] / depth
+    if info is not None and u.requires_grad:
+        means2d = torch.stack([u, v], 1)
+        means2d.retain_grad()
+        u, v = means2d.unbind(1)
+        info.update(means2d=means2d, front=index)
     jacobian = depth.new_zeros(len(depth), 2, 3)
     jacobian[:, 0, 0] = fx / depth
     jacobian[:, 0, 2] = fx * local[:, 0] / depth ** 2

@@ -1,0 +1,524 @@
+"""The ``splats`` backbone: a weight NeRF's run whose model is 3D Gaussians trained from the
+images themselves, so that what the studio draws and what the PLY holds is the model that
+was trained, not a bake of a field (docs/splats.md).
+
+Two stages, as the paper trains a field: first RGB (positions, shapes, opacities and a
+view-dependent colour in spherical harmonics, with adaptive density control, one training
+image an iteration, L1 and 1 - SSIM), then the palette weights of every splat with its
+geometry frozen. A splat's weights are an editable part, on the simplex for the additive
+basis (a softmax; ``fields.base.ACTIVATIONS``), plus a view-dependent residual in spherical
+harmonics of degree 1 to ``sh_degree`` that sums to zero over the channels, so that the
+weights of every view still sum to one; recolouring stays linear (``weights @ basis``).
+The residual's share of the weights is reported (``SplatRun.residual_share``).
+
+Coordinates are the scene box's normalised ones (``scene_box.SceneBox``); the run's
+``splats()`` gives them in the world.
+
+References
+----------
+B. Kerbl et al. 3D Gaussian splatting for real-time radiance field rendering. SIGGRAPH
+2023 (initial scales, learning rates, the loss, the degree schedule).
+Z. Kuang et al. PaletteNeRF: palette-based appearance editing of neural radiance fields.
+CVPR 2023 (the two stages, the view-dependent residual beside the palette weights).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+from tqdm import tqdm
+
+from palette_core.basis import Basis, check_basis, n_terms
+from palette_core.errors import InputError, first_line
+
+from ..appearance import Appearance
+from ..cameras import Intrinsics
+from ..config import Strategy, TrainConfig
+from ..contraction import EXTENT
+from ..data import Dataset, join_weights
+from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
+from ..losses import recorded_rgb_loss, ssim_loss, weight_loss
+from ..metrics import psnr_from_mse
+from ..regions import KEEP_WEIGHT, PixelSamples
+from ..run import (
+    CHECKPOINT,
+    CONFIG,
+    RunBase,
+    RunRecord,
+    check_rundir,
+    default_device,
+    read_checkpoint,
+    run_record,
+    write_checkpoint,
+)
+from ..scene_box import SceneBox, box_from_dict, scene_box
+from .model import Splats, covariances
+from .rasterise import draw
+from .sh import SH_C0, sh_basis, sh_terms
+from .strategy import Densification
+
+GEOMETRY = ("means", "scales", "quats", "opacities")
+INITIAL_OPACITY = 0.1
+#: At most one starting splat for this many pixels of a training image: more, at a low
+#: opacity, all cover every pixel (hundreds of pairs a pixel on a tiny image).
+PIXELS_PER_INITIAL = 4
+FAR_SHELL = 1.9  # far splats start in the contracted shell out to this (10 box half sizes)
+
+
+class SplatModel(nn.Module):
+    """Gaussians in the normalised box: ``means`` (S, 3), log standard deviations ``scales``
+    (S, 3), quaternions ``quats`` (S, 4; w, x, y, z), opacity logits ``opacities`` (S,), and
+    either an RGB colour in spherical harmonics, ``colours`` (S, 3) of degree 0 and
+    ``colours_rest`` (S, B - 1, 3) above (``kind`` RGB), or palette ``weights`` (S, M)
+    before their activation and their view-dependent ``residual`` (S, B - 1, M) (``kind``
+    the basis); B = (``degree`` + 1)^2."""
+
+    def __init__(self, tensors: dict[str, torch.Tensor], kind: str, degree: int):
+        super().__init__()
+        self.kind, self.degree = kind, degree
+        for name, tensor in tensors.items():
+            setattr(self, name, nn.Parameter(tensor))
+
+    def values(self, eye: torch.Tensor, degree: int | None = None) -> torch.Tensor:
+        """(S, C) each splat's RGB or palette weights seen from ``eye`` (3,), with the
+        spherical harmonics up to ``degree`` (all by default)."""
+        degree = self.degree if degree is None else degree
+        basis = sh_basis(nn.functional.normalize(self.means - eye, dim=1), degree)[:, 1:]
+        if self.kind == RGB:
+            return torch.clamp(SH_C0 * self.colours + 0.5 + _rest(basis, self.colours_rest),
+                               min=0)
+        weights = ACTIVATIONS[self.kind](self.weights)
+        if degree == 0:
+            return weights
+        residual = _rest(basis, self.residual)
+        if self.kind == Basis.ADDITIVE:  # on the simplex: the residual sums to zero
+            residual = residual - residual.mean(1, keepdim=True)
+            weights = torch.clamp(weights + residual, min=0)
+            return weights / weights.sum(1, keepdim=True).clamp(min=1e-12)
+        return torch.clamp(weights + residual, min=0)
+
+    def gaussians(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(S, 3, 3) covariances and (S,) opacities."""
+        return covariances(self.quats, torch.exp(self.scales)), torch.sigmoid(self.opacities)
+
+    def set_output(self, kind: str, weights: torch.Tensor) -> None:
+        """Freeze the geometry and replace the RGB colours by (S, M) palette ``weights``
+        (after their activation) and a zero residual."""
+        for name in GEOMETRY:
+            getattr(self, name).requires_grad_(False)
+        del self.colours, self.colours_rest
+        self.kind = kind
+        self.weights = nn.Parameter(INVERSE_ACTIVATIONS[kind](weights.clamp(min=1e-4)))
+        self.residual = nn.Parameter(weights.new_zeros(len(weights), sh_terms(self.degree) - 1,
+                                                       weights.shape[1]))
+
+
+def _rest(basis: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
+    """(S, C) values of degrees 1 and up: (S, B' - 1) ``basis`` x the first B' - 1 of the
+    (S, B - 1, C) ``coefficients``."""
+    return torch.einsum("sb,sbc->sc", basis, coefficients[:, :basis.shape[1]])
+
+
+@dataclass
+class SplatRun(RunBase):
+    """A ``splats`` run: ``RunBase``'s record and its ``SplatModel``."""
+
+    model: SplatModel | None = None
+    appearance: Appearance | None = None
+
+    @property
+    def kind(self) -> str:
+        return self.model.kind
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.means.device
+
+    def baked(self, factor: int = 0):
+        raise InputError("--baked reads a field finer: a splat run has no field to bake")
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) world corners of the splats in the scene box (their 1st and 99th
+        percentiles, within the box)."""
+        with torch.no_grad():
+            means = self.model.means.cpu().numpy().astype(np.float64)
+        inside = means[np.all(np.abs(means) <= self.box.extent, axis=1)]
+        corners = (np.percentile(inside, [1, 99], axis=0) if len(inside)
+                   else np.stack([-self.box.extent, self.box.extent]))
+        return self.box.centre + self.box.scale * corners
+
+    @torch.no_grad()
+    def render(self, poses: np.ndarray, progress: bool = False,
+               intrinsics: Intrinsics | list[Intrinsics] | None = None,
+               samples: bool = False) -> tuple:
+        """Draw whole views (``Run.render``'s contract): (N, H, W, C) values premultiplied
+        by opacity, (N, H, W) opacity and, with ``samples``, ``regions.PixelSamples``: each
+        pixel's splats at their centres, with their contributions (those below
+        ``KEEP_WEIGHT`` dropped, but each pixel's strongest)."""
+        cameras = (intrinsics if isinstance(intrinsics, list)
+                   else [intrinsics or self.intrinsics] * len(poses))
+        covariance, opacity = self.model.gaussians()
+        centres = (self.model.means.cpu().numpy().astype(np.float64) * self.box.scale
+                   + self.box.centre).astype(np.float32)
+        values, accs, kept, first = [], [], [], 0
+        for pose, camera in tqdm(zip(poses, cameras), desc="draw splats", unit="view",
+                                 total=len(poses), disable=not progress):
+            local = normalised_pose(pose, self.box, self.device)
+            info = {}
+            drawn, acc = draw(self.model.means, covariance, self.model.values(local[:3, 3]),
+                              opacity, local, camera, self.config.splats.reach, info)
+            values.append(drawn.view(camera.height, camera.width, -1).cpu().numpy())
+            accs.append(acc.view(camera.height, camera.width).cpu().numpy())
+            if samples and "pairs" in info:
+                pixel, splat, weight = info["pairs"]
+                strongest = torch.zeros(len(acc), device=weight.device).scatter_reduce(
+                    0, pixel, weight, "amax")
+                keep = (weight >= torch.clamp(strongest[pixel], max=KEEP_WEIGHT)).cpu().numpy()
+                kept.append((first + pixel.cpu().numpy()[keep],
+                             centres[splat.cpu().numpy()[keep]], weight.cpu().numpy()[keep]))
+            first += camera.height * camera.width
+        rendered = np.stack(values), np.stack(accs)
+        if not samples:
+            return rendered
+        parts = [np.concatenate(part) for part in zip(*kept)] if kept else [
+            np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, np.float32)]
+        return (*rendered, PixelSamples(*parts))
+
+    def splats(self, source: dict) -> Splats:
+        """The run's splats in world coordinates, with their editable weights (the
+        view-dependent residual left out) and ``source``."""
+        if self.kind == RGB:
+            raise InputError("the run was trained on RGB only (strategy 'rgb'): its splats "
+                             "have no palette weights")
+        model, box = self.model, self.box
+        with torch.no_grad():
+            weights = ACTIVATIONS[model.kind](model.weights)
+            quats = nn.functional.normalize(model.quats, dim=1)
+            arrays = [model.means * box.scale + torch.as_tensor(box.centre, device=self.device),
+                      torch.exp(model.scales) * box.scale, quats,
+                      torch.sigmoid(model.opacities).clamp(1e-6, 1 - 1e-6), weights]
+        return Splats(*(a.float().cpu().numpy() for a in arrays), self.palette, self.basis,
+                      self.order, np.asarray(self.config.background, np.float64), source)
+
+    @torch.no_grad()
+    def residual_share(self, poses: np.ndarray) -> float:
+        """Mean over splats and ``poses`` of |weights with residual - weights without| summed
+        over the channels, halved: the share of the weights that depends on the view."""
+        model = self.model
+        shares = [(model.values(normalised_pose(p, self.box, self.device)[:3, 3])
+                   - model.values(torch.zeros(3, device=self.device), 0)).abs().sum(1).mean() / 2
+                  for p in poses]
+        return float(torch.stack(shares).mean())
+
+
+def normalised_pose(pose: np.ndarray, box: SceneBox, device) -> torch.Tensor:
+    """(4, 4) float32 camera-to-world ``pose`` in the box's normalised coordinates."""
+    local = np.array(pose, np.float64)
+    local[:3, 3] = (local[:3, 3] - box.centre) / box.scale
+    return torch.as_tensor(local, dtype=torch.float32, device=device)
+
+
+def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generator) -> dict:
+    """``n`` splats at random in the box (half of them, in an unbounded scene, in its
+    contracted shell out to ``FAR_SHELL``), grey, ``INITIAL_OPACITY`` opaque, as wide as the
+    mean distance to their three nearest neighbours, with colours of ``degree``."""
+    far = n // 2 if box.unbounded else 0
+    extent = torch.as_tensor(box.extent, dtype=torch.float32)
+    means = (torch.rand(n - far, 3, generator=generator) * 2 - 1) * extent
+    if far:
+        shell = torch.rand(far, 3, generator=generator) * 2 - 1
+        norm = shell.abs().amax(1, keepdim=True).clamp(min=1e-6)
+        radius = 1 + torch.rand(far, 1, generator=generator) * (FAR_SHELL - 1)
+        means = torch.cat([means, shell / norm / (EXTENT - radius)])  # uncontracted
+    distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:]
+    scale = torch.as_tensor(np.log(np.maximum(distance.mean(1), 1e-7)), dtype=torch.float32)
+    return {"means": means, "scales": scale[:, None].repeat(1, 3),
+            "quats": torch.tensor([1.0, 0, 0, 0]).repeat(n, 1),
+            "opacities": torch.full((n,), math.log(INITIAL_OPACITY / (1 - INITIAL_OPACITY))),
+            "colours": torch.zeros(n, 3),
+            "colours_rest": torch.zeros(n, sh_terms(degree) - 1, 3)}
+
+
+def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLike,
+          resume: bool = False, force: bool = False, weights_path: str = "",
+          progress: bool = True, device: torch.device | None = None) -> SplatRun:
+    """Train (or resume) a splat run and write its run folder (``trainer.train``'s
+    contract): RGB for ``pretrain_iters``, then the palette weights for ``finetune_iters``
+    (``two-stage``); ``rgb`` stops after the first; ``traditional`` is not offered (the
+    geometry needs colours to grow from)."""
+    if config.strategy == Strategy.TRADITIONAL:
+        raise InputError("the splats backbone trains two-stage or rgb, not traditional")
+    device = device or default_device()
+    rundir = Path(rundir)
+    check_rundir(rundir, resume, force)
+    settings = config.splats
+    train_ids = dataset.indices("train")
+    weights = join_weights(dataset, stack, "train")  # (n, H, W, M)
+    if stack.basis == Basis.ADDITIVE:
+        weights = weights * dataset.alpha[train_ids, ..., None]
+    state = read_checkpoint(rundir / CHECKPOINT) if resume else None
+    if resume and TrainConfig.from_dict(state["config"]) != config:
+        raise InputError(f"{rundir} was trained with another config; start afresh with --force")
+    if resume:
+        run = _from_state(state, str(rundir / CHECKPOINT), device)
+    else:
+        box = scene_box(dataset.poses[train_ids], dataset.cameras(train_ids),
+                        dataset.alpha[train_ids], config.space)
+        generator = torch.Generator().manual_seed(config.seed)
+        channels = n_terms(len(stack.palette), stack.basis, stack.order)
+        record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,
+                           stack_meta=stack.meta, frames_outside=dataset.frames_outside,
+                           downscale=dataset.downscale)
+        pixels = min(dataset.camera(i).width * dataset.camera(i).height for i in train_ids)
+        initial = max(4, min(settings.initial, pixels // PIXELS_PER_INITIAL))
+        model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator), RGB,
+                           settings.sh_degree)
+        run = SplatRun(config, box, dataset.intrinsics, np.asarray(stack.palette, np.float64),
+                       stack.basis, stack.order, record, model.to(device))
+    run.record.weights = weights_path
+    if config.appearance and run.appearance is None:
+        run.appearance = Appearance(len(train_ids)).to(device)
+    views = _training_views(run, dataset, train_ids, weights, device)
+    rundir.mkdir(parents=True, exist_ok=True)
+    config.save(rundir / CONFIG)
+    extent = 1.1 * float(max(torch.linalg.norm(v.pose[:3, 3]) for v in views))
+    optimiser = _optimiser(run, extent)
+    if resume:
+        _load_optimiser(optimiser, state["optimisers"], rundir)
+    strategy = Densification(settings, extent, int(settings.refine_stop * config.pretrain_iters))
+    generator = torch.Generator().manual_seed(config.seed)
+    if resume:
+        generator.set_state(state["generator"])
+    terms = torch.as_tensor(run.terms, dtype=torch.float32, device=device)
+    background = torch.as_tensor(config.background, dtype=torch.float32, device=device)
+    last = config.pretrain_iters if config.strategy == Strategy.RGB else config.total_iters
+    log, it = run.record.log, run.record.iteration
+    bar = tqdm(desc="train splats", initial=it, total=last, disable=not progress, unit="it")
+    clock = time.perf_counter() - (log[-1]["seconds"] if log else 0.0)
+    while it < last:
+        if it >= config.pretrain_iters and run.kind == RGB:
+            _start_palette(run, views, device)
+            optimiser = _optimiser(run, extent)
+        view = views[int(torch.randint(len(views), (1,), generator=generator))]
+        _set_rates(optimiser, config, extent, it)
+        info = {}
+        loss, psnr = _loss(run, view, terms, background, it, info)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        if run.kind == RGB:
+            strategy.after_backward(run.model, optimiser, info, it + 1, view.camera.width,
+                                    view.camera.height)
+        optimiser.step()
+        seconds = time.perf_counter() - clock
+        log.append({"iteration": it + 1, "seconds": seconds, "loss": loss.item(), "psnr": psnr,
+                    "stage": str(run.kind), "splats": len(run.model.means)})
+        it = _next_iteration(config, last, it + 1, seconds)
+        run.record.iteration = it
+        bar.update(it - bar.n)
+        bar.set_postfix(stage=run.kind, splats=len(run.model.means), psnr=f"{psnr:.2f}")
+        if it % config.checkpoint_every == 0 or it == last:
+            save_checkpoint(run, rundir / CHECKPOINT, optimiser, generator)
+    bar.close()
+    return run
+
+
+def _next_iteration(config: TrainConfig, last: int, it: int, seconds: float) -> int:
+    """``it``, or the next stage's first (or ``last``) once the stage has used its share of
+    ``config.minutes`` (``trainer._next_iteration``'s rule)."""
+    if not config.minutes:
+        return it
+    pretraining = it < config.pretrain_iters and last > config.pretrain_iters
+    share = config.pretrain_iters / last if pretraining else 1.0
+    if seconds < 60 * config.minutes * share:
+        return it
+    return config.pretrain_iters if pretraining else last
+
+
+@dataclass
+class _View:
+    """A training image on the device: its normalised pose, camera, (H, W, 3) colours,
+    (H, W, M) weights (premultiplied by alpha for the additive basis), (H, W) alpha and
+    its index among the training images."""
+
+    pose: torch.Tensor
+    camera: Intrinsics
+    rgb: torch.Tensor
+    weights: torch.Tensor
+    alpha: torch.Tensor
+    image: int
+
+
+def _training_views(run: SplatRun, dataset: Dataset, train_ids, weights, device) -> list:
+    def tensor(a):
+        return torch.as_tensor(a, dtype=torch.float32, device=device)
+
+    return [_View(normalised_pose(dataset.poses[i], run.box, device), dataset.camera(i),
+                  tensor(dataset.images[i]), tensor(weights[n]), tensor(dataset.alpha[i]), n)
+            for n, i in enumerate(train_ids)]
+
+
+def _loss(run: SplatRun, view: _View, terms, background, it: int,
+          info: dict) -> tuple[torch.Tensor, float]:
+    """Loss of one training view and the PSNR of its colours (through the weights in the
+    palette stage); ``info`` receives what densification needs (``rasterise.draw``)."""
+    model, config = run.model, run.config
+    degree = min(model.degree, it // config.splats.sh_every) if model.kind == RGB else None
+    covariance, opacity = model.gaussians()
+    values, acc = draw(model.means, covariance, model.values(view.pose[:3, 3], degree), opacity,
+                       view.pose, view.camera, config.splats.reach, info)
+    h, w = view.camera.height, view.camera.width
+    values, acc = values.view(h, w, -1), acc.view(h, w)
+    if model.kind == RGB:
+        rgb = _as_recorded(run, values + (1 - acc[..., None]) * background, view)
+        ssim = config.splats.ssim_weight
+        loss = ((1 - ssim) * torch.mean(torch.abs(rgb - view.rgb))
+                + ssim * ssim_loss(rgb, view.rgb)
+                + config.opacity_weight * torch.mean((acc - view.alpha) ** 2))
+    else:
+        rgb = _as_recorded(run, values @ terms + (1 - acc[..., None]) * background, view)
+        loss = weight_loss(model.kind, values, view.weights)
+        if config.rgb_weight:
+            loss = loss + config.rgb_weight * recorded_rgb_loss(rgb, view.rgb)
+    with torch.no_grad():
+        mse = float(torch.mean((rgb.clamp(0, 1) - view.rgb) ** 2))
+    return loss, psnr_from_mse(max(mse, 1e-10))
+
+
+def _as_recorded(run: SplatRun, rgb: torch.Tensor, view: _View) -> torch.Tensor:
+    """(H, W, 3) colours as the view's image recorded them (``appearance``)."""
+    if run.appearance is None:
+        return rgb
+    image = torch.full((rgb.shape[0] * rgb.shape[1],), view.image, device=rgb.device)
+    return run.appearance(rgb.reshape(-1, 3), image).view(rgb.shape)
+
+
+@torch.no_grad()
+def _start_palette(run: SplatRun, views: list, device) -> None:
+    """Freeze the geometry and start each splat's weights at the mean of the training
+    weights it sends light to, weighted by that light (one pass over the views; a splat
+    no view sees starts at the mean weights)."""
+    model = run.model
+    channels = views[0].weights.shape[-1]
+    light = torch.zeros(len(model.means), channels + 1, device=device)
+    covariance, opacity = model.gaussians()
+    for view in views:
+        with torch.enable_grad():
+            probe = torch.zeros(len(model.means), channels + 1, device=device,
+                                requires_grad=True)
+            drawn, _ = draw(model.means, covariance, probe, opacity, view.pose, view.camera,
+                            run.config.splats.reach)
+            straight = view.weights.view(-1, channels)
+            if run.basis == Basis.ADDITIVE:  # premultiplied by alpha in the views
+                straight = straight / view.alpha.view(-1, 1).clamp(min=1e-6)
+            target = torch.cat([straight, torch.ones_like(straight[:, :1])], 1)
+            (drawn * target).sum().backward()  # d/d(value) = the light a splat sends there
+        light += probe.grad
+    mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
+    seen = light[:, -1:] > 1e-6
+    weights = torch.where(seen, light[:, :-1] / light[:, -1:].clamp(min=1e-6), mean)
+    if run.basis == Basis.ADDITIVE:
+        weights = weights / weights.sum(1, keepdim=True).clamp(min=1e-6)
+    model.set_output(run.basis, weights.clamp(min=0))
+
+
+def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:
+    """One Adam, a group a trained parameter, named by it (``strategy.edit_rows``)."""
+    s = run.config.splats
+    rates = {"means": s.means_lr * extent, "scales": s.scales_lr, "quats": s.quats_lr,
+             "opacities": s.opacities_lr, "colours": s.colours_lr,
+             "colours_rest": s.colours_lr / 20, "weights": s.weights_lr,
+             "residual": s.weights_lr / 20}
+    groups = [{"name": name, "params": [p], "lr": rates[name]}
+              for name, p in run.model.named_parameters() if p.requires_grad]
+    if run.appearance is not None:
+        groups.append({"name": "appearance", "params": list(run.appearance.parameters()),
+                       "lr": 1e-3})
+    return torch.optim.Adam(groups, eps=1e-15)
+
+
+def _set_rates(optimiser, config: TrainConfig, extent: float, it: int) -> None:
+    """The centres' rate decays exponentially to a hundredth over the RGB stage."""
+    share = min(it / max(1, config.pretrain_iters), 1.0)
+    for group in optimiser.param_groups:
+        if group["name"] == "means":
+            group["lr"] = config.splats.means_lr * extent * 0.01 ** share
+
+
+def _load_optimiser(optimiser, state, rundir: Path) -> None:
+    try:
+        optimiser.load_state_dict(state[0])
+    except (ValueError, KeyError, TypeError, IndexError):
+        raise InputError(f"{rundir} was trained with other optimisers than its parameters "
+                         "take; start afresh with --force") from None
+
+
+def save_checkpoint(run: SplatRun, path: Path, optimiser, generator) -> None:
+    """Write the run (``run.write_checkpoint``; the splats' tensors as its ``field``)."""
+    model = run.model
+    output = {"kind": str(model.kind), "channels": 3 if model.kind == RGB
+              else model.weights.shape[1], "degree": model.degree}
+    extra = {} if run.appearance is None else {"appearance": run.appearance.state_dict()}
+    write_checkpoint(run, path, model.state_dict(), output, [optimiser.state_dict()],
+                     generator, extra)
+
+
+def load_run(state: dict, path: str, device: torch.device) -> SplatRun:
+    """The splat run of a checkpoint's ``state`` (read by ``run.load_run``), on ``device``."""
+    return _from_state(state, path, device)
+
+
+def _from_state(state: dict, path: str, device) -> SplatRun:
+    try:
+        config = TrainConfig.from_dict(state["config"], path)
+        intrinsics = Intrinsics.from_dict(state["intrinsics"], path)
+        palette = np.array(state["palette"], np.float64)
+        if (palette.ndim != 2 or palette.shape[1:] != (3,) or len(palette) == 0
+                or not np.all((palette >= 0) & (palette <= 1))):
+            raise InputError(f"{path}: palette must have shape (K, 3) with values in [0, 1]")
+        basis = Basis.parse(state["basis"])
+        channels = check_basis(len(palette), basis, state["order"], path)
+        output, tensors = state["output"], dict(state["field"])
+        kind = RGB if output["kind"] == RGB else Basis.parse(output["kind"])
+        degree = int(output["degree"])
+        _check_tensors(tensors, kind, degree, channels, path)
+        model = SplatModel(tensors, kind, degree)
+        if kind != RGB:
+            for name in GEOMETRY:
+                getattr(model, name).requires_grad_(False)
+        run = SplatRun(config, box_from_dict(state["box"], path), intrinsics, palette, basis,
+                       int(state["order"]), run_record(state), model.to(device))
+        if config.appearance:
+            run.appearance = Appearance(len(state["appearance"]["affine"]))
+            run.appearance.load_state_dict(state["appearance"])
+            run.appearance.to(device)
+        return run
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"checkpoint {path} is malformed: {first_line(exc)}") from None
+
+
+def _check_tensors(tensors: dict, kind: str, degree: int, channels: int, path: str) -> None:
+    """InputError unless the checkpoint's splat tensors have the shapes of one model and
+    finite values (a checkpoint from elsewhere is read as data only)."""
+    if not 0 <= degree <= 3:
+        raise InputError(f"{path}: spherical-harmonics degree must be in [0, 3], got {degree}")
+    s = len(tensors.get("means", ()))
+    b = sh_terms(degree)
+    shapes = {"means": (s, 3), "scales": (s, 3), "quats": (s, 4), "opacities": (s,)}
+    shapes.update({"colours": (s, 3), "colours_rest": (s, b - 1, 3)} if kind == RGB
+                  else {"weights": (s, channels), "residual": (s, b - 1, channels)})
+    if (set(tensors) != set(shapes) or s == 0
+            or any(tuple(tensors[k].shape) != v for k, v in shapes.items())):
+        raise InputError(f"{path}: the splats' tensors have the wrong names or shapes")
+    if not all(torch.isfinite(t).all() for t in tensors.values()):
+        raise InputError(f"{path}: the splats hold NaN or infinity")
+    if (tensors["quats"].norm(dim=1) < 1e-6).any():
+        raise InputError(f"{path}: a splat rotation is not a quaternion")
+

@@ -1,0 +1,294 @@
+"""The ``splats`` backbone: the rasteriser against a brute-force sum and finite differences,
+spherical harmonics, weights on the simplex from every view, densification's bounds, and a
+splat run that trains, saves, loads, renders, bakes and exports."""
+
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nerf_stage.backbones import SplatConfig  # noqa: E402
+from nerf_stage.cameras import Intrinsics, look_at  # noqa: E402
+from nerf_stage.cli import main  # noqa: E402
+from nerf_stage.fields.base import RGB  # noqa: E402
+from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.splats import read_splats  # noqa: E402
+from nerf_stage.splats.backbone import SplatModel  # noqa: E402
+from nerf_stage.splats.model import covariances  # noqa: E402
+from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
+from nerf_stage.splats.sh import sh_basis, sh_terms  # noqa: E402
+from nerf_stage.splats.strategy import Densification  # noqa: E402
+from palette_core.basis import Basis  # noqa: E402
+from palette_core.errors import InputError  # noqa: E402
+
+from .helpers import expect_error  # noqa: E402
+
+CAMERA = Intrinsics(width=12, height=10, fx=14.0, fy=14.0, cx=6.0, cy=5.0)
+POSE = torch.as_tensor(look_at(np.array([0.0, 0.0, 3.0]), np.zeros(3)), dtype=torch.float64)
+
+
+def few_splats(n=5, seed=0, dtype=torch.float64):
+    """``n`` splats around the origin, in front of ``POSE``, with random shapes."""
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g, dtype=dtype) - 0.5) * 0.8
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    scales = 0.08 + 0.15 * torch.rand(n, 3, generator=g, dtype=dtype)
+    opacities = 0.3 + 0.6 * torch.rand(n, generator=g, dtype=dtype)
+    values = torch.rand(n, 4, generator=g, dtype=dtype)
+    return means, covariances(quats, scales), values, opacities
+
+
+def brute_force(means, cov, values, opacities, pose, camera):
+    """Every pixel: the splats sorted by depth, alpha from each one's projected Gaussian,
+    blended front to back (3D Gaussian splatting's image formation), in float64."""
+    pose = pose.double()
+    rotation, origin = pose[:3, :3], pose[:3, 3]
+    out = torch.zeros(camera.height * camera.width, values.shape[1], dtype=torch.float64)
+    acc = torch.zeros(camera.height * camera.width, dtype=torch.float64)
+    local = (means - origin) @ rotation
+    depth = -local[:, 2]
+    order = torch.argsort(depth)
+    for py in range(camera.height):
+        for px in range(camera.width):
+            light = 1.0
+            for s in order.tolist():
+                x, y, z = local[s]
+                d = -z
+                u, v = camera.cx + camera.fx * x / d, camera.cy - camera.fy * y / d
+                j = torch.tensor([[camera.fx / d, 0, camera.fx * x / d**2],
+                                  [0, -camera.fy / d, -camera.fy * y / d**2]], dtype=torch.float64)
+                t = j @ rotation.T
+                sigma = t @ cov[s] @ t.T + LOW_PASS * torch.eye(2, dtype=torch.float64)
+                delta = torch.tensor([px + 0.5 - u, py + 0.5 - v], dtype=torch.float64)
+                alpha = min(MAX_ALPHA, float(opacities[s] * torch.exp(
+                    -0.5 * delta @ torch.linalg.inv(sigma) @ delta)))
+                if alpha < 1 / 255 or light < MIN_TRANSMITTANCE:
+                    continue
+                out[py * camera.width + px] += light * alpha * values[s]
+                acc[py * camera.width + px] += light * alpha
+                light *= 1 - alpha
+    return out, acc
+
+
+def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel():
+    splats = few_splats()
+    drawn, acc = draw(*splats, POSE, CAMERA, reach=64)
+    out, want = brute_force(*splats, POSE, CAMERA)
+    assert acc.max() > 0.3  # the splats are in view
+    assert torch.allclose(drawn, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
+
+
+def test_the_rasterisers_gradients_match_finite_differences():
+    means, cov, values, opacities = few_splats(3, seed=1)
+    quats = torch.randn(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    scales = torch.full((3, 3), 0.15, dtype=torch.float64)
+    weights = torch.rand(CAMERA.height * CAMERA.width, 4, dtype=torch.float64)
+
+    def loss(means, scales, values, opacities):
+        drawn, acc = draw(means, covariances(quats, scales), values, opacities, POSE, CAMERA,
+                          reach=64)
+        return (drawn * weights).sum() + acc.square().sum()
+
+    inputs = [t.clone().requires_grad_(True) for t in (means, scales, values, opacities)]
+    assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_draw_reports_the_screen_positions_densification_reads():
+    means, cov, values, opacities = few_splats()
+    means.requires_grad_(True)
+    info = {}
+    drawn, _ = draw(means, cov, values, opacities, POSE, CAMERA, 64, info)
+    drawn.sum().backward()
+    assert info["means2d"].shape == (5, 2) and info["means2d"].grad is not None
+    assert set(info["drawn"].tolist()) <= set(info["front"].tolist())
+
+
+def test_spherical_harmonics_are_orthonormal_over_the_sphere():
+    """The basis integrates to the identity over the unit sphere (a Fibonacci grid of
+    directions): the constants and signs are those of real spherical harmonics."""
+    n = 20000
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (1 + 5**0.5) * i
+    r = torch.sqrt(1 - z * z)
+    directions = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], 1)
+    basis = sh_basis(directions, 3)
+    gram = basis.T @ basis * (4 * math.pi / n)
+    assert basis.shape == (n, sh_terms(3)) and torch.allclose(gram, torch.eye(16, dtype=gram.dtype),
+                                                                atol=1e-3)
+
+
+def _palette_model(n=50, channels=4, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    tensors = {"means": torch.randn(n, 3, generator=g), "scales": torch.full((n, 3), -2.0),
+               "quats": torch.randn(n, 4, generator=g), "opacities": torch.zeros(n),
+               "colours": torch.zeros(n, 3), "colours_rest": torch.zeros(n, 15, 3)}
+    model = SplatModel(tensors, RGB, 3)
+    weights = torch.rand(n, channels, generator=g)
+    model.set_output(Basis.ADDITIVE, weights / weights.sum(1, keepdim=True))
+    with torch.no_grad():
+        model.residual.normal_(0, 0.5, generator=g)  # a strong view dependence
+    return model
+
+
+def test_palette_weights_stay_on_the_simplex_from_every_view():
+    model = _palette_model()
+    assert not any(getattr(model, name).requires_grad for name in ("means", "scales"))
+    for eye in torch.randn(20, 3, generator=torch.Generator().manual_seed(3)) * 5:
+        weights = model.values(eye)
+        assert torch.isfinite(weights).all() and weights.min() >= 0
+        assert torch.allclose(weights.sum(1), torch.ones(len(weights)), atol=1e-5)
+    assert torch.allclose(model.values(torch.zeros(3), 0).sum(1), torch.ones(50), atol=1e-5)
+
+
+def _rgb_model(n, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    tensors = {"means": torch.randn(n, 3, generator=g), "scales": torch.full((n, 3), -2.0),
+               "quats": torch.randn(n, 4, generator=g), "opacities": torch.zeros(n),
+               "colours": torch.zeros(n, 3), "colours_rest": torch.zeros(n, 3, 3)}
+    return SplatModel(tensors, RGB, 1)
+
+
+def _optimiser(model):
+    return torch.optim.Adam([{"name": name, "params": [p], "lr": 1e-3}
+                             for name, p in model.named_parameters()])
+
+
+def test_densification_clones_splits_and_prunes_within_the_bounds():
+    """Ten splats pulled ever harder, room for four more: the four pulled hardest grow (two
+    small ones cloned, two large ones split in two smaller halves), and the transparent
+    one's halves are pruned."""
+    model = _rgb_model(10)
+    optimiser = _optimiser(model)
+    sum(p.sum() for p in model.parameters()).backward()
+    optimiser.step()  # moments exist, of the old row count
+    settings = SplatConfig(initial=4, max_splats=14, refine_start=0, refine_every=1,
+                           reset_every=1000, grow_scale=0.05)
+    with torch.no_grad():
+        model.scales[6:8] = -4.0  # small: cloned
+        model.opacities[9] = -10.0  # nearly transparent: pruned
+    means, scales = model.means.detach().clone(), model.scales.detach().clone()
+    info = {"means2d": torch.zeros(10, 2), "front": torch.arange(10), "drawn": torch.arange(10)}
+    info["means2d"].grad = torch.arange(1.0, 11.0)[:, None].repeat(1, 2) * 1e-3
+    Densification(settings, extent=1.0, stop=100).after_backward(model, optimiser, info, 1,
+                                                                  100, 100)
+    assert len(model.means) == 12  # 6 untouched, 2 + 2 clones, 2 halves of splat 8
+    assert torch.equal(model.means[:8], means[:8]) and torch.equal(model.means[8:10], means[6:8])
+    assert torch.allclose(model.scales[10:], scales[8] - math.log(1.6))
+    assert not torch.equal(model.means[10], means[8])  # the halves moved apart
+    for group in optimiser.param_groups:
+        (p,) = group["params"]
+        assert getattr(model, group["name"]) is p and len(p) == 12
+        assert optimiser.state[p]["exp_avg"].shape == p.shape
+        assert not optimiser.state[p]["exp_avg"][8:].any()  # new rows start without moments
+    assert (torch.sigmoid(model.opacities) >= settings.prune_opacity).all()
+
+
+def test_an_opacity_reset_caps_every_opacity():
+    model = _rgb_model(6)
+    optimiser = _optimiser(model)
+    settings = SplatConfig(initial=4, max_splats=10, reset_every=5, refine_start=100)
+    Densification(settings, 1.0, 100).after_backward(model, optimiser, {}, 5, 10, 10)
+    assert torch.sigmoid(model.opacities).max() <= 2 * settings.prune_opacity + 1e-6
+
+
+def test_splat_settings_are_checked():
+    with pytest.raises(InputError, match="initial splats must be at most max_splats"):
+        SplatConfig(initial=10, max_splats=5)
+    with pytest.raises(InputError, match="sh_degree"):
+        SplatConfig(sh_degree=4)
+    with pytest.raises(InputError, match="max_splats"):
+        SplatConfig(max_splats=10**9)
+
+
+SPLAT_FLAGS = ["--backbone", "splats", "--pretrain-iters", "30", "--finetune-iters", "10",
+               "--splats-initial", "64", "--splats-refine-start", "5",
+               "--splats-refine-every", "5", "--splats-sh-every", "10", "--checkpoint-every", "7"]
+
+
+@pytest.fixture(scope="module")
+def splat_run(cornell, tmp_path_factory):
+    rundir = tmp_path_factory.mktemp("splat-runs") / "run"
+    assert main(["train", str(cornell), "-o", str(rundir), *SPLAT_FLAGS]) == 0
+    return rundir
+
+
+def test_a_splat_run_trains_saves_loads_and_renders_the_same(splat_run, cornell):
+    run = load_run(splat_run)
+    assert run.kind == Basis.TRANSPORT and run.record.iteration == 40
+    assert run.config.backbone == "splats" and run.model.degree == 3
+    assert not run.model.means.requires_grad  # the geometry froze for the weights
+    log = run.record.log
+    assert log[-1]["stage"] == "transport" and log[0]["stage"] == RGB
+    assert log[-1]["psnr"] > log[0]["psnr"]  # it learned
+    test = run.dataset().indices("test")
+    poses = run.dataset().poses[test]
+    weights, acc = run.render(poses)
+    again = load_run(splat_run).render(poses)
+    assert np.array_equal(weights, again[0]) and np.array_equal(acc, again[1])
+    assert np.isfinite(weights).all() and weights.min() >= 0 and acc.max() <= 1 + 1e-5
+    assert 0 <= run.residual_share(poses) < 1
+
+
+def test_a_splat_run_evaluates_renders_bakes_and_exports(splat_run, tmp_path, capsys):
+    assert main(["eval", str(splat_run)]) == 0
+    assert "RGB through the weights: PSNR" in capsys.readouterr().out
+    assert main(["render", str(splat_run), "-o", str(tmp_path / "render")]) == 0
+    assert main(["bake", str(splat_run), "-o", str(tmp_path / "splats.npz")]) == 0
+    splats = read_splats(tmp_path / "splats.npz")
+    run = load_run(splat_run)
+    assert len(splats) == len(run.model.means)  # the model itself, not a bake of it
+    assert main(["export", str(tmp_path / "splats.npz"), "-o", str(tmp_path / "s.ply")]) == 0
+    assert (tmp_path / "s.ply").stat().st_size > 0
+
+
+def test_a_splat_run_resumes_where_it_stopped(cornell, tmp_path):
+    flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "8", "--finetune-iters", "4",
+             "--splats-initial", "32", "--checkpoint-every", "5"]
+    assert main(["train", str(cornell), "-o", str(tmp_path / "a"), *flags]) == 0
+    assert main(["train", str(cornell), "-o", str(tmp_path / "a"), *flags, "--resume"]) == 0
+    assert load_run(tmp_path / "a").record.iteration == 12
+
+
+def test_a_checkpoint_with_splats_of_the_wrong_shape_is_refused(splat_run, tmp_path, capsys):
+    state = torch.load(splat_run / CHECKPOINT, weights_only=True)
+    state["field"]["means"] = state["field"]["means"][:-1]
+    (tmp_path / "bad").mkdir()
+    torch.save(state, tmp_path / "bad" / CHECKPOINT)
+    expect_error(main, ["eval", str(tmp_path / "bad")], "wrong names or shapes", capsys)
+
+
+def test_traditional_training_is_refused_for_splats(cornell, tmp_path, capsys):
+    expect_error(main, ["train", str(cornell), "-o", str(tmp_path / "t"), *SPLAT_FLAGS,
+                        "--strategy", "traditional"], "two-stage or rgb", capsys)
+
+
+def test_a_splat_run_recolours_inside_a_region_only(splat_run, tmp_path, capsys):
+    """A region's pixels take the edit through the splats inside it (their centres), the
+    rest keep the run's palette."""
+    from nerf_stage.editing import RENDER_FILE, read_render
+
+    palette = tmp_path / "teal.json"
+    palette.write_text('{"palette": ' + str([[0.1, 0.6, 0.55]] * 4) + "}")
+    out = tmp_path / "local"
+    assert main(["render", str(splat_run), "--palette", str(palette), "--region",
+                 "box:-5,-5,2.5,5,6,6", "-o", str(out)]) == 0
+    saved = read_render(out / RENDER_FILE)
+    assert saved.samples is not None and len(saved.samples.pixel) > 0
+    teal = np.full((4, 3), [0.1, 0.6, 0.55])
+    local, everywhere, untouched = saved.recolor(None, teal), saved.recolor(teal), saved.recolor()
+    assert (np.abs(local - untouched).max(-1) > 1e-3).any()  # the region's pixels change
+    assert (np.abs(local - everywhere).max(-1) > 1e-3).any()  # but not as everywhere
+
+
+def test_the_studio_draws_a_splat_runs_own_splats(splat_run):
+    from studio.scene import SceneTarget
+
+    target = SceneTarget.open(splat_run)
+    run = load_run(splat_run)
+    assert len(target.splats) == len(run.model.means)
+    assert np.all(target.bounds[0] <= target.bounds[1])
+    view = target.render(target.home_pose(), target.intrinsics(1.0, 8))
+    assert view.weights.shape[1:3] == (8, 8) and view.samples is not None
