@@ -90,11 +90,13 @@ def prepare(scene: str, data: Path) -> tuple[Path, Path]:
 
 def scene_run(scene: str, out: Path, config: TrainConfig):
     """The built-in ``scene`` simulated into ``out`` (``prepare``) and its run,
-    ``out/<scene>-run``, trained with ``config`` unless it is there already; returns the
-    dataset, the run and the weight stack's path."""
+    ``out/<scene>-run`` (``<scene>-<backbone>-run`` for another backbone than the grid),
+    trained with ``config`` unless it is there already; returns the dataset, the run and
+    the weight stack's path."""
     root, stack_path = prepare(scene, out)
     dataset = load_dataset(root, config.background)
-    rundir = out / f"{scene}-run"
+    backbone = "" if config.backbone == "grid" else f"-{config.backbone}"
+    rundir = out / f"{scene}{backbone}-run"
     if not (rundir / CHECKPOINT).is_file():
         train(config, dataset, read_stack(stack_path), rundir, force=True,
               weights_path=str(stack_path.resolve()))

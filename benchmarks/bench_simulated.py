@@ -17,7 +17,10 @@ material is seen, 0 when the material went to another channel. A response below
 and after the global edit: ``OUT/simulated.png``.
 
     python benchmarks/bench_simulated.py [--out benchmarks/out/simulated] [--scenes ...]
-                                         [--iters P F]
+                                         [--iters P F] [--backbone splats] [--minutes M]
+
+``--backbone`` trains another backbone than the default (runs kept apart by name);
+``--minutes`` limits each run's training time, to compare backbones at one budget.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import numpy as np
 from bench_nerf import scene_run, table
 from PIL import Image
 
+from nerf_stage.backbones import BACKBONES
 from nerf_stage.config import TrainConfig
 from nerf_stage.editing import WeightRender, render_poses
 from nerf_stage.evaluation import composited, evaluate, rolled_palette
@@ -96,9 +100,12 @@ def main() -> None:
     parser.add_argument("--scenes", nargs="+", default=list(BUILTIN_SCENES),
                         choices=BUILTIN_SCENES)
     parser.add_argument("--iters", type=int, nargs=2, default=None, metavar=("P", "F"))
+    parser.add_argument("--backbone", default="grid", choices=list(BACKBONES))
+    parser.add_argument("--minutes", type=float, default=0.0,
+                        help="training time limit of each run (0: none)")
     args = parser.parse_args()
     iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
-    config = TrainConfig(**iters)
+    config = TrainConfig(backbone=args.backbone, minutes=args.minutes, **iters)
     results, rows, pictures = {}, [], []
     for scene in args.scenes:
         dataset, run, stack_path = scene_run(scene, args.out, config)
@@ -123,8 +130,9 @@ def main() -> None:
           "(test views)",
           ["scene", "space", "PSNR", "SSIM", "edit PSNR", "edit response per material",
            f"lost (< {LOST})", "train s"], rows)
-    (args.out / "results.json").write_text(json.dumps(results, indent=1))
-    figure(pictures, args.out / "simulated.png")
+    name = "" if args.backbone == "grid" else f"-{args.backbone}"
+    (args.out / f"results{name}.json").write_text(json.dumps(results, indent=1))
+    figure(pictures, args.out / f"simulated{name}.png")
 
 
 def _view_row(render: WeightRender, dataset, stack) -> list:

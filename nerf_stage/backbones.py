@@ -162,6 +162,9 @@ class SplatConfig:
     """Weight of 1 - SSIM beside L1 in the RGB stage's loss."""
     reach: int = 64
     """Pixels from its centre that a splat is drawn to at most."""
+    patch: int = 0
+    """Side in pixels of the random square of a training image that an iteration draws and
+    compares (0: the whole image): an iteration's cost follows its pixels."""
     refine_start: int = 500
     """Iteration of the first densification."""
     refine_stop: float = 0.5
@@ -203,6 +206,7 @@ class SplatConfig:
         integers(self, 1, MAX_ITERS, "sh_every", "refine_every", "reset_every")
         integers(self, 0, MAX_ITERS, "refine_start")
         integers(self, 1, 4096, "reach")
+        integers(self, 0, 1 << 16, "patch")
         if self.initial > self.max_splats:
             raise InputError(f"initial splats must be at most max_splats, got {self.initial} > "
                              f"{self.max_splats}")

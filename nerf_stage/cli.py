@@ -76,8 +76,10 @@ def _add_bake(commands) -> None:
         "bake", help="bake a run into 3D Gaussian splats that carry palette weights",
         description="Bake a weight NeRF into 3D Gaussians, one where the training views' light "
                     "stops, each with the palette weights of its light, refined against the "
-                    "network's renders of the training views (docs/splats.md). Not to be "
-                    "confused with render --baked (the colour part baked into a grid).")
+                    "network's renders of the training views (docs/splats.md). A run of the "
+                    "splats backbone is written as it was trained (no bake; --max-splats and "
+                    "--refine-steps do not apply). Not to be confused with render --baked (the "
+                    "colour part baked into a grid).")
     bake.add_argument("rundir", metavar="RUNDIR")
     bake.add_argument("-o", "--output", metavar="FILE.splat.npz",
                       help=f"default RUNDIR/{SPLAT_CACHE}, the bake palette-studio and export "

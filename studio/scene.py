@@ -24,7 +24,7 @@ from nerf_stage.cameras import Intrinsics, look_at, turntable_poses
 from nerf_stage.editing import WeightRender, render_weights, write_gif
 from nerf_stage.fields import RGB
 from nerf_stage.regions import Region
-from nerf_stage.run import Run, load_run
+from nerf_stage.run import RunBase, load_run
 from nerf_stage.splats import Splats, cached_bake, write_ply
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
@@ -49,7 +49,7 @@ class SceneTarget:
 
     Parameters
     ----------
-    run : Run
+    run : RunBase
     path : Path
         The run folder (default exports go into it).
 
@@ -59,6 +59,9 @@ class SceneTarget:
         The bake the browser draws (None: the network only).
     home : (4, 4) float64 or None
         The first training camera, where a new tab starts.
+    up : (3,) float64
+        The training cameras' mean up (unit; +y when they have none): the axis the browser's
+        camera orbits about.
     bounds : (2, 3) float64
         World corners of what the run found occupied (``Run.bounds``).
     centre : (3,) float64
@@ -67,11 +70,12 @@ class SceneTarget:
 
     mode = "scene"
 
-    def __init__(self, run: Run, path: Path, splats: Splats | None = None,
-                 home: np.ndarray | None = None):
+    def __init__(self, run: RunBase, path: Path, splats: Splats | None = None,
+                 home: np.ndarray | None = None, up: np.ndarray | None = None):
         self.run = run
         self.path = path
         self.splats, self.home = splats, home
+        self.up = np.array([0.0, 1.0, 0.0]) if up is None else up
         self.bounds = run.bounds()
         self.centre = self.bounds.mean(0)
         self._views: OrderedDict[tuple, WeightRender] = OrderedDict()
@@ -87,14 +91,17 @@ class SceneTarget:
             raise InputError(f"{path} was trained on RGB only (strategy 'rgb'): it has no "
                              "weights to recolour")
         dataset = run.dataset()
-        home = dataset.poses[dataset.indices("train")[0]]
+        train = dataset.indices("train")
+        home = dataset.poses[train[0]]
+        up = dataset.poses[train, :3, 1].sum(0)
+        up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-6 else None
         splats = None
         if bake:
             try:
                 splats = cached_bake(run, path, dataset=dataset, **bake_options)
             except InputError as exc:
                 log(f"no splats, the network draws every view: {exc}")
-        return cls(run, Path(path), splats, home)
+        return cls(run, Path(path), splats, home, up)
 
     @property
     def palette(self) -> np.ndarray:

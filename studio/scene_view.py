@@ -95,6 +95,7 @@ class SceneView:
         return self.drawer.value == SPLATS
 
     def connect(self, client) -> None:
+        self.studio.server.scene.set_up_direction(tuple(self.target.up))
         look_from_home(client.camera, self.target)
         self.open_viewports()
         self.viewports[client.client_id] = Viewport(self.studio, self, client)
@@ -141,13 +142,15 @@ class SceneView:
 
 
 def look_from_home(camera, target: SceneTarget) -> None:
-    """Put a tab's ``camera`` (viser's) at ``target``'s home camera, with its field of view."""
+    """Put a tab's ``camera`` (viser's) exactly at ``target``'s home camera: its position,
+    its direction, its field of view and its roll (the camera's own up; a training camera
+    need not stand level)."""
     pose = target.home_pose()
     eye = pose[:3, 3]
     camera.fov = target.fov_y
-    camera.up_direction = (0.0, 1.0, 0.0)
+    camera.up_direction = tuple(pose[:3, 1])
     camera.position = eye
-    camera.look_at = eye - pose[:3, 2] * np.linalg.norm(target.centre - eye)
+    camera.look_at = eye - pose[:3, 2] * max(np.linalg.norm(target.centre - eye), 1e-3)
 
 
 class Viewport:

@@ -80,6 +80,16 @@ def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel():
     assert torch.allclose(drawn, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
 
 
+def test_a_window_of_a_view_is_that_part_of_the_whole_view():
+    splats = few_splats()
+    whole, acc = draw(*splats, POSE, CAMERA, reach=64)
+    part, part_acc = draw(*splats, POSE, CAMERA, reach=64, window=(3, 2, 5, 4))
+    whole = whole.view(CAMERA.height, CAMERA.width, -1)[2:6, 3:8]
+    assert torch.allclose(part.view(4, 5, -1), whole, atol=1e-12)
+    assert torch.allclose(part_acc.view(4, 5), acc.view(CAMERA.height, CAMERA.width)[2:6, 3:8],
+                          atol=1e-12)
+
+
 def test_the_rasterisers_gradients_match_finite_differences():
     means, cov, values, opacities = few_splats(3, seed=1)
     quats = torch.randn(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
@@ -246,7 +256,7 @@ def test_a_splat_run_evaluates_renders_bakes_and_exports(splat_run, tmp_path, ca
 
 def test_a_splat_run_resumes_where_it_stopped(cornell, tmp_path):
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "8", "--finetune-iters", "4",
-             "--splats-initial", "32", "--checkpoint-every", "5"]
+             "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6"]
     assert main(["train", str(cornell), "-o", str(tmp_path / "a"), *flags]) == 0
     assert main(["train", str(cornell), "-o", str(tmp_path / "a"), *flags, "--resume"]) == 0
     assert load_run(tmp_path / "a").record.iteration == 12

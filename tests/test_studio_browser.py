@@ -274,3 +274,29 @@ def test_a_page_from_another_origin_cannot_write_files(driver, serve, attacker_s
     else:
         assert result == "open"
         assert browser.wait_for(stolen.exists, timeout=20)
+
+
+def test_the_home_view_is_exactly_a_training_camera_roll_included(driver, serve, scene_run):
+    """A tab opens at the home camera as the browser reports it back: position, direction
+    and roll (a camera tilted 30 degrees about its axis stays tilted)."""
+    from studio.pictures import camera_pose
+    from studio.scene import SceneTarget
+
+    target = SceneTarget.open(scene_run, bake=False)
+    home = target.home_pose().copy()
+    roll = np.radians(30)
+    turn = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0],
+                     [0, 0, 1]])
+    home[:3, :3] = home[:3, :3] @ turn
+    target.home = home
+    studio = serve(target)
+    driver.get(studio.url)
+    assert browser.wait_for(lambda: studio.server.get_clients(), timeout=30)
+    client = next(iter(studio.server.get_clients().values()))
+
+    def arrived():
+        pose = camera_pose(client.camera)
+        return np.allclose(pose[:3, :3], home[:3, :3], atol=1e-3) and np.allclose(
+            pose[:3, 3], home[:3, 3], atol=1e-3)
+
+    assert browser.wait_for(arrived, timeout=30), (camera_pose(client.camera), home)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -309,13 +309,14 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
             optimiser = _optimiser(run, extent)
         view = views[int(torch.randint(len(views), (1,), generator=generator))]
         _set_rates(optimiser, config, extent, it)
+        view = _patch(view, settings.patch, generator)
         info = {}
         loss, psnr = _loss(run, view, terms, background, it, info)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         if run.kind == RGB:
-            strategy.after_backward(run.model, optimiser, info, it + 1, view.camera.width,
-                                    view.camera.height)
+            strategy.after_backward(run.model, optimiser, info, it + 1, view.window[2],
+                                    view.window[3])
         optimiser.step()
         seconds = time.perf_counter() - clock
         log.append({"iteration": it + 1, "seconds": seconds, "loss": loss.item(), "psnr": psnr,
@@ -344,9 +345,9 @@ def _next_iteration(config: TrainConfig, last: int, it: int, seconds: float) -> 
 
 @dataclass
 class _View:
-    """A training image on the device: its normalised pose, camera, (H, W, 3) colours,
-    (H, W, M) weights (premultiplied by alpha for the additive basis), (H, W) alpha and
-    its index among the training images."""
+    """A training image (or a ``window`` of it: x, y, width, height) on the device: its
+    normalised pose, camera, (H, W, 3) colours, (H, W, M) weights (premultiplied by alpha
+    for the additive basis), (H, W) alpha and its index among the training images."""
 
     pose: torch.Tensor
     camera: Intrinsics
@@ -354,6 +355,21 @@ class _View:
     weights: torch.Tensor
     alpha: torch.Tensor
     image: int
+    window: tuple[int, int, int, int]
+
+
+def _patch(view: _View, size: int, generator: torch.Generator) -> _View:
+    """A random ``size`` x ``size`` window of ``view`` (the whole view when it is no larger
+    or ``size`` is 0)."""
+    width, height = view.camera.width, view.camera.height
+    if not size or (size >= width and size >= height):
+        return view
+    w, h = min(size, width), min(size, height)
+    x, y = (int(torch.randint(extent - side + 1, (1,), generator=generator))
+            for extent, side in ((width, w), (height, h)))
+    rows, columns = slice(y, y + h), slice(x, x + w)
+    return replace(view, rgb=view.rgb[rows, columns], weights=view.weights[rows, columns],
+                   alpha=view.alpha[rows, columns], window=(x, y, w, h))
 
 
 def _training_views(run: SplatRun, dataset: Dataset, train_ids, weights, device) -> list:
@@ -361,7 +377,8 @@ def _training_views(run: SplatRun, dataset: Dataset, train_ids, weights, device)
         return torch.as_tensor(a, dtype=torch.float32, device=device)
 
     return [_View(normalised_pose(dataset.poses[i], run.box, device), dataset.camera(i),
-                  tensor(dataset.images[i]), tensor(weights[n]), tensor(dataset.alpha[i]), n)
+                  tensor(dataset.images[i]), tensor(weights[n]), tensor(dataset.alpha[i]), n,
+                  (0, 0, dataset.camera(i).width, dataset.camera(i).height))
             for n, i in enumerate(train_ids)]
 
 
@@ -373,8 +390,8 @@ def _loss(run: SplatRun, view: _View, terms, background, it: int,
     degree = min(model.degree, it // config.splats.sh_every) if model.kind == RGB else None
     covariance, opacity = model.gaussians()
     values, acc = draw(model.means, covariance, model.values(view.pose[:3, 3], degree), opacity,
-                       view.pose, view.camera, config.splats.reach, info)
-    h, w = view.camera.height, view.camera.width
+                       view.pose, view.camera, config.splats.reach, info, view.window)
+    w, h = view.window[2:]
     values, acc = values.view(h, w, -1), acc.view(h, w)
     if model.kind == RGB:
         rgb = _as_recorded(run, values + (1 - acc[..., None]) * background, view)

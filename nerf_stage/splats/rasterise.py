@@ -61,19 +61,22 @@ def splat_tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
 
 
 def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: Intrinsics,
-         reach: int = 32, info: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+         reach: int = 32, info: dict | None = None,
+         window: tuple[int, int, int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
-    splats' parameters), each splat drawn at most ``reach`` pixels from its centre.
+    splats' parameters), each splat drawn at most ``reach`` pixels from its centre; with a
+    ``window`` (x, y, width, height) of the view, that part of it only (W x H of it).
 
     With an ``info`` dict, it receives what densification needs: ``means2d`` (F, 2), the
     pixel positions of the F splats in front of the camera (gradients retained), their
     indices ``front`` (F,), and ``drawn`` (D,), the splats with a pixel in the view; and
     ``pairs``: (P,) pixel, splat and contribution (transmittance x alpha) of every pair
     drawn, by pixel, front to back."""
-    h, w = camera.height, camera.width
-    weights = values.new_zeros(h * w, values.shape[1])
-    opacity = values.new_zeros(h * w)
-    pairs = _pairs(centres, covariances, opacities, pose, camera, reach, info)
+    window = window or (0, 0, camera.width, camera.height)
+    pixels = window[2] * window[3]
+    weights = values.new_zeros(pixels, values.shape[1])
+    opacity = values.new_zeros(pixels)
+    pairs = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
     if info is not None:
         info["drawn"] = (torch.unique(pairs[1]) if pairs is not None
                          else torch.zeros(0, dtype=torch.long, device=centres.device))
@@ -102,10 +105,11 @@ def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
 
 
 def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int,
-           info: dict | None):
-    """The (pixel, splat, alpha) pairs of one view above 1/255 with at least
-    ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel, then front to
-    back; None when no splat shows (``draw``'s ``info`` filled on the way)."""
+           info: dict | None, window: tuple[int, int, int, int]):
+    """The (pixel, splat, alpha) pairs of one view's ``window`` above 1/255 with at least
+    ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel (of the window),
+    then front to back; None when no splat shows (``draw``'s ``info`` filled on the way)."""
+    left, top, width, height = window
     pose = pose.to(centres.dtype)
     rotation, origin = pose[:3, :3], pose[:3, 3]
     local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
@@ -136,10 +140,10 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     level = torch.sqrt(2 * torch.log((255 * opacities.detach()).clamp(min=1)))
     rx = (level * torch.sqrt(a.detach())).clamp(max=reach)
     ry = (level * torch.sqrt(c.detach())).clamp(max=reach)
-    x0 = (u.detach() - rx).floor().clamp(0, camera.width)
-    x1 = (u.detach() + rx).ceil().clamp(0, camera.width)
-    y0 = (v.detach() - ry).floor().clamp(0, camera.height)
-    y1 = (v.detach() + ry).ceil().clamp(0, camera.height)
+    x0 = (u.detach() - rx).floor().clamp(left, left + width)
+    x1 = (u.detach() + rx).ceil().clamp(left, left + width)
+    y0 = (v.detach() - ry).floor().clamp(top, top + height)
+    y1 = (v.detach() + ry).ceil().clamp(top, top + height)
     shown = (x1 > x0) & (y1 > y0)
     if not shown.any():
         return None
@@ -165,7 +169,8 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     with torch.no_grad():  # the pairs that show, sorted by pixel, then front to back
         alpha = _alpha(table.index_select(0, ids), px, py)
         visible = torch.nonzero(alpha >= 1 / 255)[:, 0]
-        pixel = py.index_select(0, visible) * camera.width + px.index_select(0, visible)
+        pixel = ((py.index_select(0, visible) - top) * width
+                 + px.index_select(0, visible) - left)
         pixel, order = torch.sort(pixel, stable=True)  # by pixel, still front to back
         visible = visible.index_select(0, order)
         kept = _transmittance(pixel, alpha.index_select(0, visible)) >= MIN_TRANSMITTANCE
