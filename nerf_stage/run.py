@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from palette_core.basis import Basis, basis_terms, check_basis
+from palette_core.basis import Basis, basis_terms, check_basis, n_terms
 from palette_core.errors import InputError, first_line
 from palette_core.outputs import atomic_outputs
 
@@ -347,6 +347,22 @@ def restore(run: Run, state: dict) -> None:
     run.record.iteration, run.record.log = saved.iteration, saved.log
 
 
+def run_fields(state: dict, path: str) -> dict:
+    """``RunBase``'s fields, by name, of a checkpoint's ``state``, checked (a checkpoint
+    from elsewhere is read as data only); KeyError, TypeError or ValueError where one is
+    missing or malformed."""
+    palette = np.array(state["palette"], np.float64)
+    if (palette.ndim != 2 or palette.shape[1:] != (3,) or len(palette) == 0
+            or not np.all((palette >= 0) & (palette <= 1))):
+        raise InputError(f"{path}: palette must have shape (K, 3) with values in [0, 1]")
+    basis = Basis.parse(state["basis"])
+    check_basis(len(palette), basis, state["order"], path)
+    return {"config": TrainConfig.from_dict(state["config"], path),
+            "box": box_from_dict(state["box"], path),
+            "intrinsics": Intrinsics.from_dict(state["intrinsics"], path), "palette": palette,
+            "basis": basis, "order": int(state["order"]), "record": run_record(state)}
+
+
 def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> RunBase:
     """The trained run in ``rundir``: a ``Run``, or what a backbone that is not a field
     loads (``backbones.BackboneSpec``).
@@ -364,22 +380,17 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
         spec = BACKBONES[config.backbone]
         if not spec.is_field:
             return spec.module().load_run(state, str(path), device)
-        intrinsics = Intrinsics.from_dict(state["intrinsics"], str(path))
-        palette = np.array(state["palette"], np.float64)
-        if (palette.ndim != 2 or palette.shape[1:] != (3,) or len(palette) == 0
-                or not np.all((palette >= 0) & (palette <= 1))):
-            raise InputError(f"{path}: palette must have shape (K, 3) with values in [0, 1]")
-        basis = Basis.parse(state["basis"])
-        channels = check_basis(len(palette), basis, state["order"], str(path))
+        if "occupancy" not in state:  # a field run's own key
+            raise InputError(f"checkpoint {path} lacks occupancy")
+        base = run_fields(state, str(path))
+        channels = n_terms(len(base["palette"]), base["basis"], base["order"])
         output = state["output"]
         if output["kind"] != RGB and output["channels"] != channels:
             raise InputError(f"{path}: the field outputs {output['channels']} channels, the "
                              f"basis has {channels}")
-        box = box_from_dict(state["box"], str(path))
-        field = make_field(config, box, output["kind"], output["channels"])
-        occupancy = OccupancyGrid.over(box, config.occupancy_voxels)
-        run = Run(config, box, intrinsics, palette, basis, int(state["order"]),
-                  run_record(state), field, occupancy)
+        field = make_field(config, base["box"], output["kind"], output["channels"])
+        occupancy = OccupancyGrid.over(base["box"], config.occupancy_voxels)
+        run = Run(**base, field=field, occupancy=occupancy)
         restore(run, state)
         run.field.to(device)
         run.occupancy.to(device)

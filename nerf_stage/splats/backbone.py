@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 from tqdm import tqdm
 
-from palette_core.basis import Basis, check_basis, n_terms
+from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError, first_line
 
 from ..appearance import Appearance
@@ -56,10 +56,10 @@ from ..run import (
     check_rundir,
     default_device,
     read_checkpoint,
-    run_record,
+    run_fields,
     write_checkpoint,
 )
-from ..scene_box import SceneBox, box_from_dict, scene_box
+from ..scene_box import SceneBox, scene_box
 from .model import Splats, covariances
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
@@ -494,14 +494,8 @@ def load_run(state: dict, path: str, device: torch.device) -> SplatRun:
 
 def _from_state(state: dict, path: str, device) -> SplatRun:
     try:
-        config = TrainConfig.from_dict(state["config"], path)
-        intrinsics = Intrinsics.from_dict(state["intrinsics"], path)
-        palette = np.array(state["palette"], np.float64)
-        if (palette.ndim != 2 or palette.shape[1:] != (3,) or len(palette) == 0
-                or not np.all((palette >= 0) & (palette <= 1))):
-            raise InputError(f"{path}: palette must have shape (K, 3) with values in [0, 1]")
-        basis = Basis.parse(state["basis"])
-        channels = check_basis(len(palette), basis, state["order"], path)
+        base = run_fields(state, path)
+        channels = n_terms(len(base["palette"]), base["basis"], base["order"])
         output, tensors = state["output"], dict(state["field"])
         kind = RGB if output["kind"] == RGB else Basis.parse(output["kind"])
         degree = int(output["degree"])
@@ -510,9 +504,8 @@ def _from_state(state: dict, path: str, device) -> SplatRun:
         if kind != RGB:
             for name in GEOMETRY:
                 getattr(model, name).requires_grad_(False)
-        run = SplatRun(config, box_from_dict(state["box"], path), intrinsics, palette, basis,
-                       int(state["order"]), run_record(state), model.to(device))
-        if config.appearance:
+        run = SplatRun(**base, model=model.to(device))
+        if run.config.appearance:
             run.appearance = Appearance(len(state["appearance"]["affine"]))
             run.appearance.load_state_dict(state["appearance"])
             run.appearance.to(device)
