@@ -198,17 +198,21 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
 
 
 class Snapshots(threading.Thread):
-    """While in its ``with``, keeps each version of ``checkpoint`` that a training process
-    writes (atomically, by renaming) as a hard link in ``folder``, emptied first."""
+    """While in its ``with``, keeps each new version of ``checkpoint`` that a training
+    process writes (atomically, by renaming) as a hard link in ``folder``, emptied first
+    (the version there before, an earlier run's, is not kept)."""
 
     def __init__(self, checkpoint: Path, folder: Path):
         super().__init__(daemon=True)
         self.checkpoint, self.folder, self.done = checkpoint, folder, threading.Event()
+        self.seen = None
 
     def __enter__(self):
         self.folder.mkdir(parents=True, exist_ok=True)
         for old in self.folder.glob("*.pt"):
             old.unlink()
+        if self.checkpoint.is_file():
+            self.seen = _version(self.checkpoint)
         self.start()
         return self
 
@@ -217,19 +221,24 @@ class Snapshots(threading.Thread):
         self.join()
 
     def run(self) -> None:
-        seen = None
         while True:
             finished = self.done.is_set()  # one last look after the process has ended
             try:
-                inode = self.checkpoint.stat().st_ino
-                if inode != seen:
+                version = _version(self.checkpoint)
+                if version != self.seen:
                     os.link(self.checkpoint, self.folder / f"{time.monotonic_ns()}.pt")
-                    seen = inode
+                    self.seen = version
             except FileNotFoundError:  # not written yet, or renamed over just now
                 pass
             if finished:
                 return
             self.done.wait(0.5)
+
+
+def _version(path: Path) -> tuple[int, int]:
+    """What tells one written version of a file from the next: its inode and mtime."""
+    status = path.stat()
+    return status.st_ino, status.st_mtime_ns
 
 
 def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iterations: float,
