@@ -335,7 +335,7 @@ def _export(args) -> int:
     palette = (None if args.palette is None
                else read_palette_json(args.palette, k=len(splats.palette)))
     with atomic_outputs(args.force) as stage:
-        write_ply(splats, stage(output), splats.colours(palette))
+        write_ply(splats, stage(output), palette)
     print(f"wrote {len(splats)} splats to {output}")
     return 0
 

@@ -170,7 +170,7 @@ class SceneTarget:
         check_writable([path], force)
         if suffix == ".ply":
             with atomic_outputs(force) as stage:
-                write_ply(self.splats, stage(path), self.splats.colours(palette, regions))
+                write_ply(self.splats, stage(path), palette, regions)
             return [path]
         poses = turntable_poses(pose, self.centre, views)
         frames = np.concatenate([recoloured(self.render(p, intrinsics), palette, regions)

@@ -302,3 +302,45 @@ def test_the_studio_draws_a_splat_runs_own_splats(splat_run):
     assert np.all(target.bounds[0] <= target.bounds[1])
     view = target.render(target.home_pose(), target.intrinsics(1.0, 8))
     assert view.weights.shape[1:3] == (8, 8) and view.samples is not None
+
+
+def test_the_ply_of_a_splat_run_carries_its_view_dependence(splat_run, tmp_path):
+    """What a PLY viewer computes from f_dc and f_rest for a direction is what the run
+    draws from that direction (where no weight is clipped at zero or colour at one)."""
+    import trimesh
+
+    from nerf_stage.splats import write_ply, write_splats
+
+    run = load_run(splat_run)
+    splats = run.splats({})
+    assert splats.residual.shape == (len(splats), 15, splats.weights.shape[1])
+    write_splats(splats, tmp_path / "s.npz")
+    again = read_splats(tmp_path / "s.npz")
+    assert np.array_equal(again.residual, splats.residual)
+    write_ply(again, tmp_path / "s.ply")
+    table = trimesh.load(tmp_path / "s.ply").metadata["_ply_raw"]["vertex"]["data"]
+    dc = np.stack([table[f"f_dc_{c}"] for c in range(3)], 1)
+    rest = np.stack([table[f"f_rest_{i}"] for i in range(45)], 1).reshape(-1, 3, 15)
+    eye = run.box.centre + np.array([0.3, 0.2, 2.0]) * run.box.scale
+    directions = splats.centres - eye
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    basis = sh_basis(torch.as_tensor(directions), 3).numpy()
+    viewer = 0.28209479177387814 * dc + 0.5 + np.einsum("sb,scb->sc", basis[:, 1:], rest)
+    eye_box = torch.as_tensor((eye - run.box.centre) / run.box.scale, dtype=torch.float32)
+    with torch.no_grad():
+        raw = torch.nn.functional.softplus(run.model.weights) + torch.einsum(
+            "sb,sbm->sm", torch.as_tensor(basis[:, 1:], dtype=torch.float32), run.model.residual)
+        drawn = (run.model.values(eye_box) @ torch.as_tensor(run.terms, dtype=torch.float32))
+    plain = ((raw >= 0).all(1) & (torch.as_tensor(splats.colours()) < 1).all(1)).numpy()
+    assert plain.sum() >= 20
+    assert np.allclose(viewer[plain], drawn.numpy()[plain], atol=1e-4)
+
+
+def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, tmp_path):
+    from nerf_stage.splats import write_splats
+
+    splats = load_run(splat_run).splats({})
+    splats.residual = splats.residual[:, :4]
+    write_splats(splats, tmp_path / "s.npz")
+    with pytest.raises(InputError, match="residual must have shape"):
+        read_splats(tmp_path / "s.npz")

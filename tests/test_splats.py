@@ -168,7 +168,7 @@ def test_a_region_keeps_the_edit_to_the_splats_inside_it(hand_made, rng):
 def test_the_ply_holds_what_splat_viewers_read(hand_made, tmp_path, rng):
     additive_bake = hand_made
     edit = rng.uniform(0, 1, additive_bake.palette.shape)
-    write_ply(additive_bake, tmp_path / "s.ply", additive_bake.colours(edit))
+    write_ply(additive_bake, tmp_path / "s.ply", edit)
     data = read_ply(tmp_path / "s.ply")
     assert data.dtype.names == ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
                                 "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",

@@ -12,9 +12,10 @@ from .baking import (
     cached_bake,
     refine,
 )
-from .export import SH_C0, write_ply
+from .export import write_ply
 from .model import SPLAT_FORMAT, Splats, covariances, matrix_quaternions, read_splats, write_splats
 from .rasterise import draw, render_splats, splat_tensors
+from .sh import SH_C0
 
 __all__ = [
     "BAKE_VERSION",

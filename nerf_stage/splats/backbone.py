@@ -193,8 +193,9 @@ class SplatRun(RunBase):
         return (*rendered, PixelSamples(*parts))
 
     def splats(self, source: dict) -> Splats:
-        """The run's splats in world coordinates, with their editable weights (the
-        view-dependent residual left out) and ``source``."""
+        """The run's splats in world coordinates, with their editable weights, their
+        view-dependent residual (summing to zero over the channels for the additive basis,
+        as ``SplatModel.values`` uses it) and ``source``."""
         if self.kind == RGB:
             raise InputError("the run was trained on RGB only (strategy 'rgb'): its splats "
                              "have no palette weights")
@@ -202,11 +203,15 @@ class SplatRun(RunBase):
         with torch.no_grad():
             weights = ACTIVATIONS[model.kind](model.weights)
             quats = nn.functional.normalize(model.quats, dim=1)
+            residual = model.residual.detach()
+            if model.kind == Basis.ADDITIVE:
+                residual = residual - residual.mean(2, keepdim=True)
             arrays = [model.means * box.scale + torch.as_tensor(box.centre, device=self.device),
                       torch.exp(model.scales) * box.scale, quats,
                       torch.sigmoid(model.opacities).clamp(1e-6, 1 - 1e-6), weights]
         return Splats(*(a.float().cpu().numpy() for a in arrays), self.palette, self.basis,
-                      self.order, np.asarray(self.config.background, np.float64), source)
+                      self.order, np.asarray(self.config.background, np.float64), source,
+                      residual.float().cpu().numpy() if model.degree else None)
 
     @torch.no_grad()
     def residual_share(self, poses: np.ndarray) -> float:

@@ -45,6 +45,10 @@ class Splats:
     source : dict
         The run it was baked from: its folder, checkpoint iteration and training time, the
         cell size, the views used.
+    residual : (S, B - 1, M) float32 or None
+        The weights' view-dependent residual in spherical harmonics of degrees 1 and up
+        (``sh.sh_basis``; a splat run's; summing to zero over the channels for the additive
+        basis); None for a bake, which is diffuse.
     """
 
     centres: np.ndarray
@@ -57,6 +61,7 @@ class Splats:
     order: int
     background: np.ndarray
     source: dict
+    residual: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.centres)
@@ -74,9 +79,27 @@ class Splats:
         terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
         colours = np.clip(self.weights @ terms, 0, 1)
         if regions:
-            outside = ~np.any([region.contains(self.centres) for region in regions], axis=0)
+            outside = self._outside(regions)
             colours[outside] = self.colours()[outside]
         return colours
+
+    def rest_colours(self, palette: np.ndarray | None = None,
+                     regions: Sequence[Region] = ()) -> np.ndarray | None:
+        """(S, B - 1, 3) float32 spherical-harmonics coefficients of degrees 1 and up of
+        every splat's colour for ``palette`` (``colours``' arguments): the residual through
+        the basis. None without a residual."""
+        if self.residual is None:
+            return None
+        palette = self.palette if palette is None else np.asarray(palette, np.float64)
+        rest = self.residual @ basis_terms(palette, self.basis, self.order).astype(np.float32)
+        if regions:
+            outside = self._outside(regions)
+            rest[outside] = self.rest_colours()[outside]
+        return rest
+
+    def _outside(self, regions: Sequence[Region]) -> np.ndarray:
+        """(S,) bool: the splats whose centres are in none of ``regions``."""
+        return ~np.any([region.contains(self.centres) for region in regions], axis=0)
 
 
 
@@ -128,11 +151,12 @@ def matrix_quaternions(r: np.ndarray) -> np.ndarray:
 
 def write_splats(splats: Splats, path: str | os.PathLike) -> None:
     """Write a bake as NPZ format ``palette-splats/1``."""
+    residual = {} if splats.residual is None else {"residual": splats.residual}
     np.savez(path, format=np.array(SPLAT_FORMAT), centres=splats.centres, scales=splats.scales,
              rotations=splats.rotations, opacities=splats.opacities, weights=splats.weights,
              palette=splats.palette, basis=np.array(str(splats.basis)),
              order=np.array(splats.order), background=splats.background,
-             source=np.array(json.dumps(splats.source)))
+             source=np.array(json.dumps(splats.source)), **residual)
 
 
 def read_splats(path: str | os.PathLike) -> Splats:
@@ -151,6 +175,7 @@ def read_splats(path: str | os.PathLike) -> Splats:
                                                        "background")}
         basis, order = Basis.parse(npz.text("basis")), int(npz.array("order", "iu"))
         source = npz.json("source")
+        residual = npz.array("residual", "f") if "residual" in npz else None
     s = len(arrays["centres"])
     m = n_terms(len(arrays["palette"]), basis, order)
     shapes = {"centres": (s, 3), "scales": (s, 3), "rotations": (s, 4), "opacities": (s,),
@@ -159,6 +184,12 @@ def read_splats(path: str | os.PathLike) -> Splats:
             or arrays["palette"].ndim != 2 or arrays["palette"].shape[1:] != (3,)
             or not isinstance(source, dict)):
         raise InputError(f"{path}: the splats' arrays have the wrong shapes")
+    if residual is not None:
+        if (residual.ndim != 3 or residual.shape[0] != s or residual.shape[2] != m
+                or residual.shape[1] not in (3, 8, 15)):
+            raise InputError(f"{path}: the splats' residual must have shape (S, B - 1, M) "
+                             "with B - 1 of 3, 8 or 15")
+        arrays["residual"] = residual
     if not all(np.isfinite(a).all() for a in arrays.values()):
         raise InputError(f"{path}: the splats hold NaN or infinity")
     if (arrays["scales"] <= 0).any() or not ((arrays["opacities"] > 0)
@@ -168,5 +199,5 @@ def read_splats(path: str | os.PathLike) -> Splats:
         raise InputError(f"{path}: a splat rotation is not a quaternion")
     return Splats(arrays["centres"], arrays["scales"], arrays["rotations"], arrays["opacities"],
                   arrays["weights"], arrays["palette"].astype(np.float64), basis, order,
-                  arrays["background"].astype(np.float64), source)
+                  arrays["background"].astype(np.float64), source, residual)
 
