@@ -344,3 +344,15 @@ def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, t
     write_splats(splats, tmp_path / "s.npz")
     with pytest.raises(InputError, match="residual must have shape"):
         read_splats(tmp_path / "s.npz")
+
+
+def test_bounded_scenes_start_their_splats_in_the_visual_hull():
+    from nerf_stage.scene_box import SceneBox
+    from nerf_stage.splats.backbone import initial_splats
+
+    box = SceneBox(np.zeros(3), np.array([2.0, 1.0, 1.0]))
+    hull = np.zeros((4, 4, 4), bool)
+    hull[3, 0, 1] = True  # x in [0.5, 1], y in [-1, -0.5], z in [-0.5, 0] of the unit box
+    means = initial_splats(box, 50, 1, torch.Generator().manual_seed(0), hull)["means"]
+    low, high = np.array([0.5, -1.0, -0.5]) * box.extent, np.array([1.0, -0.5, 0.0]) * box.extent
+    assert ((means.numpy() >= low - 1e-6) & (means.numpy() <= high + 1e-6)).all()

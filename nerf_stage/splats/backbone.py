@@ -59,7 +59,7 @@ from ..run import (
     run_fields,
     write_checkpoint,
 )
-from ..scene_box import SceneBox, scene_box
+from ..scene_box import SceneBox, scene_box, visual_hull
 from .model import Splats, covariances
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
@@ -70,6 +70,7 @@ INITIAL_OPACITY = 0.1
 #: At most one starting splat for this many pixels of a training image: more, at a low
 #: opacity, all cover every pixel (hundreds of pairs a pixel on a tiny image).
 PIXELS_PER_INITIAL = 4
+HULL_CELLS = 64  # along each side of the box: the visual hull that bounded scenes start in
 FAR_SHELL = 1.9  # far splats start in the contracted shell out to this (10 box half sizes)
 
 
@@ -231,13 +232,20 @@ def normalised_pose(pose: np.ndarray, box: SceneBox, device) -> torch.Tensor:
     return torch.as_tensor(local, dtype=torch.float32, device=device)
 
 
-def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generator) -> dict:
-    """``n`` splats at random in the box (half of them, in an unbounded scene, in its
-    contracted shell out to ``FAR_SHELL``), grey, ``INITIAL_OPACITY`` opaque, as wide as the
-    mean distance to their three nearest neighbours, with colours of ``degree``."""
+def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generator,
+                   hull: np.ndarray | None = None) -> dict:
+    """``n`` splats at random in the box (in its ``hull`` cells (X, Y, Z) when given; half of
+    them, in an unbounded scene, in its contracted shell out to ``FAR_SHELL``), grey,
+    ``INITIAL_OPACITY`` opaque, as wide as the mean distance to their three nearest
+    neighbours, with colours of ``degree``."""
     far = n // 2 if box.unbounded else 0
     extent = torch.as_tensor(box.extent, dtype=torch.float32)
-    means = (torch.rand(n - far, 3, generator=generator) * 2 - 1) * extent
+    unit = torch.rand(n - far, 3, generator=generator)  # where in the box, or in a cell
+    if hull is not None and hull.any():
+        cells = torch.as_tensor(np.argwhere(hull), dtype=torch.float32)
+        pick = torch.randint(len(cells), (n - far,), generator=generator)
+        unit = (cells[pick] + unit) / torch.as_tensor(hull.shape, dtype=torch.float32)
+    means = (unit * 2 - 1) * extent
     if far:
         shell = torch.rand(far, 3, generator=generator) * 2 - 1
         norm = shell.abs().amax(1, keepdim=True).clamp(min=1e-6)
@@ -284,8 +292,12 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
                            downscale=dataset.downscale)
         pixels = min(dataset.camera(i).width * dataset.camera(i).height for i in train_ids)
         initial = max(4, min(settings.initial, pixels // PIXELS_PER_INITIAL))
-        model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator), RGB,
-                           settings.sh_degree)
+        hull = None
+        if not box.unbounded and (dataset.alpha[train_ids] < 1).any():
+            hull = visual_hull(box, np.full(3, HULL_CELLS), dataset.poses[train_ids],
+                               dataset.cameras(train_ids), dataset.alpha[train_ids])
+        model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, hull),
+                           RGB, settings.sh_degree)
         run = SplatRun(config, box, dataset.intrinsics, np.asarray(stack.palette, np.float64),
                        stack.basis, stack.order, record, model.to(device))
     run.record.weights = weights_path
