@@ -115,6 +115,18 @@ def test_draw_reports_the_screen_positions_densification_reads():
     assert set(info["drawn"].tolist()) <= set(info["front"].tolist())
 
 
+def test_the_reported_pairs_make_up_the_view():
+    """``info['pairs']`` (pixel, splat, contribution) sums to the drawn values: what the
+    palette stage's start and the regions read."""
+    means, cov, values, opacities = few_splats()
+    info = {}
+    drawn, acc = draw(means, cov, values, opacities, POSE, CAMERA, 64, info)
+    pixel, splat, contribution = info["pairs"]
+    rebuilt = torch.zeros_like(drawn).index_add(0, pixel, contribution[:, None] * values[splat])
+    assert torch.allclose(rebuilt, drawn, atol=1e-12)
+    assert torch.allclose(torch.zeros_like(acc).index_add(0, pixel, contribution), acc)
+
+
 def test_spherical_harmonics_are_orthonormal_over_the_sphere():
     """The basis integrates to the identity over the unit sphere (a Fibonacci grid of
     directions): the constants and signs are those of real spherical harmonics."""

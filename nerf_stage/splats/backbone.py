@@ -443,18 +443,19 @@ def _start_palette(run: SplatRun, views: list, device) -> None:
     channels = views[0].weights.shape[-1]
     light = torch.zeros(len(model.means), channels + 1, device=device)
     covariance, opacity = model.gaussians()
+    empty = model.means.new_zeros(len(model.means), 1)  # no values: the pairs are the point
     for view in views:
-        with torch.enable_grad():
-            probe = torch.zeros(len(model.means), channels + 1, device=device,
-                                requires_grad=True)
-            drawn, _ = draw(model.means, covariance, probe, opacity, view.pose, view.camera,
-                            run.config.splats.reach)
-            straight = view.weights.view(-1, channels)
-            if run.basis == Basis.ADDITIVE:  # premultiplied by alpha in the views
-                straight = straight / view.alpha.view(-1, 1).clamp(min=1e-6)
-            target = torch.cat([straight, torch.ones_like(straight[:, :1])], 1)
-            (drawn * target).sum().backward()  # d/d(value) = the light a splat sends there
-        light += probe.grad
+        info = {}
+        draw(model.means, covariance, empty, opacity, view.pose, view.camera,
+             run.config.splats.reach, info)
+        if "pairs" not in info:
+            continue
+        pixel, splat, contribution = info["pairs"]
+        straight = view.weights.view(-1, channels)
+        if run.basis == Basis.ADDITIVE:  # premultiplied by alpha in the views
+            straight = straight / view.alpha.view(-1, 1).clamp(min=1e-6)
+        target = torch.cat([straight, torch.ones_like(straight[:, :1])], 1)
+        light.index_add_(0, splat, contribution[:, None] * target[pixel])
     mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
     seen = light[:, -1:] > 1e-6
     weights = torch.where(seen, light[:, :-1] / light[:, -1:].clamp(min=1e-6), mean)
