@@ -395,5 +395,7 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
         run.field.to(device)
         run.occupancy.to(device)
         return run
+    except InputError:
+        raise
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
         raise InputError(f"checkpoint {path} is malformed: {first_line(exc)}") from None

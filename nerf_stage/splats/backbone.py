@@ -330,6 +330,10 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         info = {}
         loss, psnr = _loss(run, view, terms, background, it, info)
         optimiser.zero_grad(set_to_none=True)
+        if not torch.isfinite(loss):
+            raise InputError(f"training diverged at iteration {it + 1} (the loss is not "
+                             "finite): lower the learning rates or start afresh with another "
+                             "--seed")
         loss.backward()
         if run.kind == RGB:
             strategy.after_backward(run.model, optimiser, info, it + 1, view.window[2],

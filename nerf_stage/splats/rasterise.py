@@ -31,6 +31,10 @@ LOW_PASS = 0.1
 #: early stop): a pixel changes by less than this.
 MIN_TRANSMITTANCE = 1e-4
 MAX_ALPHA = 0.99  # no splat is more opaque than this at its peak (3D Gaussian splatting's)
+#: Splats nearer to the camera than this (in the splats' units; the scene box's half size
+#: for a splat run) are not drawn: their projection's Jacobian grows as 1 / depth^2.
+NEAR = 0.01
+FOV_CLAMP = 1.3  # of the view's half angle, where the Jacobian is taken at most
 
 
 @torch.no_grad()
@@ -114,7 +118,7 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     rotation, origin = pose[:3, :3], pose[:3, 3]
     local = (centres - origin) @ rotation  # camera axes: x right, y up, looking down -z
     depth = -local[:, 2]
-    index = torch.nonzero(depth > 1e-3)[:, 0]
+    index = torch.nonzero(depth > NEAR)[:, 0]
     local, depth = local.index_select(0, index), depth.index_select(0, index)
     covariances = covariances.index_select(0, index)
     fx, fy = camera.fx, camera.fy
@@ -125,11 +129,17 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
         means2d.retain_grad()
         u, v = means2d.unbind(1)
         info.update(means2d=means2d, front=index)
+    # the projection's Jacobian, at the centre's direction held within 1.3 times the view's
+    # half angle (3D Gaussian splatting's clamp: splats far outside the view stay finite)
+    x = depth * torch.clamp(local[:, 0] / depth, -FOV_CLAMP * camera.width / (2 * fx),
+                            FOV_CLAMP * camera.width / (2 * fx))
+    y = depth * torch.clamp(local[:, 1] / depth, -FOV_CLAMP * camera.height / (2 * fy),
+                            FOV_CLAMP * camera.height / (2 * fy))
     jacobian = depth.new_zeros(len(depth), 2, 3)
     jacobian[:, 0, 0] = fx / depth
-    jacobian[:, 0, 2] = fx * local[:, 0] / depth ** 2
+    jacobian[:, 0, 2] = fx * x / depth ** 2
     jacobian[:, 1, 1] = -fy / depth
-    jacobian[:, 1, 2] = -fy * local[:, 1] / depth ** 2
+    jacobian[:, 1, 2] = -fy * y / depth ** 2
     transform = jacobian @ rotation.T
     projected = transform @ covariances @ transform.transpose(1, 2)
     a, b, c = projected[:, 0, 0] + LOW_PASS, projected[:, 0, 1], projected[:, 1, 1] + LOW_PASS
