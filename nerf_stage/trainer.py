@@ -122,7 +122,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     config.save(rundir / CONFIG)
     optimisers = _optimisers(run)
     if resume:
-        _load_optimisers(optimisers, optimiser_states, rundir)
+        load_optimisers(optimisers, optimiser_states, rundir)
     terms = torch.as_tensor(run.terms, dtype=torch.float32, device=device)
     background = torch.as_tensor(config.background, dtype=torch.float32, device=device)
     bar = tqdm(desc=f"train {config.backbone}", initial=start, total=config.total_iters,
@@ -138,7 +138,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning)
         log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
                     "loss": loss.item(), "psnr": psnr, "stage": str(run.field.kind)})
-        after = _next_iteration(config, it + 1, log[-1]["seconds"])
+        after = next_iteration(config, it + 1, log[-1]["seconds"])
         run.record.iteration = after
         bar.update(after - it)
         bar.set_postfix(stage=run.field.kind, loss=f"{loss.item():.2e}", psnr=f"{psnr:.2f}")
@@ -149,17 +149,19 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     return run
 
 
-def _next_iteration(config: TrainConfig, it: int, seconds: float) -> int:
+def next_iteration(config: TrainConfig, it: int, seconds: float,
+                   last: int | None = None) -> int:
     """The iteration after ``it`` iterations in ``seconds``: ``it``, or the next stage's
-    first (two-stage fine-tuning; the end for one stage or the last) once the stage has
-    used its share of ``config.minutes``."""
+    first (two-stage fine-tuning; ``last``, by default ``config.total_iters``, for one stage
+    or the last) once the stage has used its share of ``config.minutes``."""
+    last = config.total_iters if last is None else last
     if not config.minutes:
         return it
     pretraining = config.strategy == Strategy.TWO_STAGE and it < config.pretrain_iters
-    share = config.pretrain_iters / config.total_iters if pretraining else 1.0
+    share = config.pretrain_iters / last if pretraining else 1.0
     if seconds < 60 * config.minutes * share:
         return it
-    return config.pretrain_iters if pretraining else config.total_iters
+    return config.pretrain_iters if pretraining else last
 
 
 def peak_memory(device: torch.device) -> str:
@@ -382,7 +384,7 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
     fit.step(closure)
 
 
-def _load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
+def load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
     """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they do not fit
     the run's parameters (a damaged or foreign checkpoint)."""
     try:

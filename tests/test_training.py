@@ -197,8 +197,8 @@ def test_a_wall_clock_limit_ends_each_stage_at_its_share(cornell, tmp_path):
     run = trained(cornell, config, tmp_path / "run")  # each stage's first iteration only
     assert [entry["iteration"] for entry in run.record.log] == [1, 51]
     assert run.record.iteration == 100 and run.field.kind == "transport"
-    assert trainer_module._next_iteration(config, 7, 0.0) == 7  # within the limit
-    assert trainer_module._next_iteration(replace(config, minutes=0.0), 7, 1e9) == 7
+    assert trainer_module.next_iteration(config, 7, 0.0) == 7  # within the limit
+    assert trainer_module.next_iteration(replace(config, minutes=0.0), 7, 1e9) == 7
     with pytest.raises(InputError, match="minutes"):
         TrainConfig(minutes=-1.0)
 

@@ -60,6 +60,7 @@ from ..run import (
     write_checkpoint,
 )
 from ..scene_box import SceneBox, scene_box, visual_hull
+from ..trainer import load_optimisers, next_iteration
 from .model import Splats, covariances
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
@@ -168,7 +169,7 @@ class SplatRun(RunBase):
                    else [intrinsics or self.intrinsics] * len(poses))
         covariance, opacity = self.model.gaussians()
         centres = (self.model.means.cpu().numpy().astype(np.float64) * self.box.scale
-                   + self.box.centre).astype(np.float32)
+                   + self.box.centre).astype(np.float32) if samples else None
         values, accs, kept, first = [], [], [], 0
         for pose, camera in tqdm(zip(poses, cameras), desc="draw splats", unit="view",
                                  total=len(poses), disable=not progress):
@@ -309,7 +310,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     extent = 1.1 * float(max(torch.linalg.norm(v.pose[:3, 3]) for v in views))
     optimiser = _optimiser(run, extent)
     if resume:
-        _load_optimiser(optimiser, state["optimisers"], rundir)
+        load_optimisers([optimiser], state["optimisers"], rundir)
     strategy = Densification(settings, extent, int(settings.refine_stop * config.pretrain_iters))
     generator = torch.Generator().manual_seed(config.seed)
     if resume:
@@ -342,7 +343,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         seconds = time.perf_counter() - clock
         log.append({"iteration": it + 1, "seconds": seconds, "loss": loss.item(), "psnr": psnr,
                     "stage": str(run.kind), "splats": len(run.model.means)})
-        it = _next_iteration(config, last, it + 1, seconds)
+        it = next_iteration(config, it + 1, seconds, last)
         run.record.iteration = it
         bar.update(it - bar.n)
         bar.set_postfix(stage=run.kind, splats=len(run.model.means), psnr=f"{psnr:.2f}")
@@ -350,18 +351,6 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
             save_checkpoint(run, rundir / CHECKPOINT, optimiser, generator)
     bar.close()
     return run
-
-
-def _next_iteration(config: TrainConfig, last: int, it: int, seconds: float) -> int:
-    """``it``, or the next stage's first (or ``last``) once the stage has used its share of
-    ``config.minutes`` (``trainer._next_iteration``'s rule)."""
-    if not config.minutes:
-        return it
-    pretraining = it < config.pretrain_iters and last > config.pretrain_iters
-    share = config.pretrain_iters / last if pretraining else 1.0
-    if seconds < 60 * config.minutes * share:
-        return it
-    return config.pretrain_iters if pretraining else last
 
 
 @dataclass
@@ -489,14 +478,6 @@ def _set_rates(optimiser, config: TrainConfig, extent: float, it: int) -> None:
     for group in optimiser.param_groups:
         if group["name"] == "means":
             group["lr"] = config.splats.means_lr * extent * 0.01 ** share
-
-
-def _load_optimiser(optimiser, state, rundir: Path) -> None:
-    try:
-        optimiser.load_state_dict(state[0])
-    except (ValueError, KeyError, TypeError, IndexError):
-        raise InputError(f"{rundir} was trained with other optimisers than its parameters "
-                         "take; start afresh with --force") from None
 
 
 def save_checkpoint(run: SplatRun, path: Path, optimiser, generator) -> None:
