@@ -1,6 +1,8 @@
 """Scene mode of the page (``app.ModeView``). The browser draws the run's splats itself
-(``nerf_stage.splats``): a camera move needs nothing from the server, a palette edit sends
-the splats' new colours. Or every tab's viewport renders the weight NeRF from its own
+(``nerf_stage.splats``), each tab its own: a palette edit sends the splats' new colours, and
+so does a camera move when the splats' weights depend on the view (a splat run's residual,
+evaluated for the tab's camera: what the browser shows is what ``nerf-stage render`` makes
+from there). Or every tab's viewport renders the weight NeRF from its own
 camera, coarse while it moves and at the training resolution once it stops, and recolours
 the cached weights on palette edits without the network; with splats, *full-quality still*
 renders the network's view once. A box region, placed with a gizmo and sized in the panel,
@@ -50,9 +52,8 @@ class SceneView:
             still = gui.add_button("full-quality still", disabled=splats is None,
                                    hint="the network's render of this view, until it moves")
             still.on_click(lambda event: self.viewports[event.client.client_id].still())
-        self.splat_node = None if splats is None else self.studio.server.scene.add_gaussian_splats(
-            "/splats", splats.centres, splats.covariances(), splats.colours(),
-            splats.opacities[:, None])
+        self.covariances = None if splats is None else splats.covariances()
+        self.studio.server.scene.set_up_direction(tuple(self.target.up))
         size = np.ptp(self.target.bounds, 0) / 4
         with gui.add_folder("Region"):
             self.local = gui.add_checkbox(
@@ -95,25 +96,21 @@ class SceneView:
         return self.drawer.value == SPLATS
 
     def connect(self, client) -> None:
-        self.studio.server.scene.set_up_direction(tuple(self.target.up))
         look_from_home(client.camera, self.target)
         self.open_viewports()
         self.viewports[client.client_id] = Viewport(self.studio, self, client)
 
     def redraw(self) -> None:
-        if self.splat_node is not None:
-            self.splat_node.visible = self.splats_drawn
-            if self.splats_drawn:
-                self.splat_node.rgbs = self.splat_colours()
         for viewport in self.open_viewports():
             viewport.recolour()
 
-    def splat_colours(self) -> np.ndarray:
-        """(S, 3) the splats' colours for the palette shown, inside the region only when it
-        is on (a splat is in when its centre is)."""
+    def splat_colours(self, eye: np.ndarray | None = None) -> np.ndarray:
+        """(S, 3) the splats' colours for the palette shown, seen from the world position
+        ``eye`` (``Splats.colours``), inside the region only when it is on (a splat is in
+        when its centre is)."""
         region = None if self.studio.before.value else self.region()
         return self.target.splats.colours(self.studio.shown_palette,
-                                          [] if region is None else [region])
+                                          [] if region is None else [region], eye)
 
     def _drawer_changed(self) -> None:
         with self.studio.lock:
@@ -154,12 +151,17 @@ def look_from_home(camera, target: SceneTarget) -> None:
 
 
 class Viewport:
-    """One tab's view in scene mode: renders on camera moves, low resolution while the
-    camera moves and at the training resolution once it stops; recolours without the
-    network on palette changes."""
+    """One tab's view in scene mode: its splats, recoloured for its camera when their
+    weights depend on the view; or the network's render on camera moves, low resolution
+    while the camera moves and at the training resolution once it stops, recoloured
+    without the network on palette changes."""
 
     def __init__(self, studio, view: SceneView, client):
         self.studio, self.view, self.target, self.client = studio, view, view.target, client
+        splats = self.target.splats
+        self.splat_node = None if splats is None else client.scene.add_gaussian_splats(
+            "/splats", splats.centres, view.covariances, self.view.splat_colours(self.eye()),
+            splats.opacities[:, None], visible=view.splats_drawn)
         self.render = None  # the WeightRender on screen
         self.drawn = (0, 0.0)  # rows of the last view drawn, and when (time.perf_counter)
         self.moved = threading.Event()
@@ -172,6 +174,10 @@ class Viewport:
     def stop(self) -> None:
         self.running = False
         self.moved.set()
+
+    def eye(self) -> np.ndarray:
+        """(3,) the tab's camera position, world coordinates."""
+        return np.asarray(self.client.camera.position, np.float64)
 
     def intrinsics(self, rows: int | None = None):
         return self.target.intrinsics(bounded_aspect(self.client.camera),
@@ -187,6 +193,8 @@ class Viewport:
                 if self.render is not None:
                     self.render = None
                     self.client.scene.set_background_image(None)
+                if self.target.splats.residual is not None:
+                    self.recolour()
                 continue
             self._draw(PREVIEW_ROWS)
             if not self.moved.wait(SETTLE_S):
@@ -208,6 +216,12 @@ class Viewport:
         self.drawn = (self.render.weights.shape[1], time.perf_counter())
 
     def recolour(self) -> None:
+        """The splats' colours for this camera and the palette shown, or the still or the
+        network's view recoloured."""
+        if self.splat_node is not None:
+            self.splat_node.visible = self.view.splats_drawn
+            if self.view.splats_drawn:
+                self.splat_node.rgbs = self.view.splat_colours(self.eye())
         if self.render is None:
             return
         region = None if self.studio.before.value else self.view.region()

@@ -3,6 +3,7 @@ spherical harmonics, weights on the simplex from every view, densification's bou
 splat run that trains, saves, loads, renders, bakes and exports."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -314,6 +315,24 @@ def test_the_studio_draws_a_splat_runs_own_splats(splat_run):
     assert np.all(target.bounds[0] <= target.bounds[1])
     view = target.render(target.home_pose(), target.intrinsics(1.0, 8))
     assert view.weights.shape[1:3] == (8, 8) and view.samples is not None
+
+
+def test_a_splat_runs_file_draws_what_the_run_renders_from_every_camera(splat_run):
+    """The splats the studio and ``render_splats`` draw, their weights evaluated for the
+    camera (``Splats.view_weights``), make the run's own render: no view dependence lost."""
+    from nerf_stage.splats import render_splats
+
+    run = load_run(splat_run)
+    splats = run.splats({})
+    poses = run.dataset().poses[:2]
+    rendered, _ = run.render(poses)
+    reach = run.config.splats.reach
+    drawn, _ = render_splats(splats, poses, run.intrinsics, reach=reach)
+    assert splats.residual is not None and np.abs(splats.residual).max() > 1e-4
+    assert np.abs(drawn - rendered).max() < 1e-4
+    diffuse, _ = render_splats(replace(splats, residual=None), poses, run.intrinsics,
+                               reach=reach)
+    assert np.abs(diffuse - rendered).max() > 1e-3  # the residual is there to lose
 
 
 def test_the_ply_of_a_splat_run_carries_its_view_dependence(splat_run, tmp_path):

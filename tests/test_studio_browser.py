@@ -154,8 +154,9 @@ def test_scene_mode_recolours_without_the_network(driver, serve, scene_run, monk
 
 
 def test_scene_mode_splats_are_drawn_by_the_browser(driver, serve, scene_run, monkeypatch):
-    """The browser draws the bake: a camera move gives new frames and a palette edit new
-    colours, and the network never runs."""
+    """The browser draws the splats: a camera move gives new frames and a palette edit new
+    colours, and the network never runs. Splats whose weights depend on the view are
+    recoloured for the tab's camera when it moves."""
     from nerf_stage.splats import Splats
     from studio.scene import SceneTarget
 
@@ -169,6 +170,8 @@ def test_scene_mode_splats_are_drawn_by_the_browser(driver, serve, scene_run, mo
             np.float32), np.full(n, 0.9, np.float32), np.eye(k, dtype=np.float32)[
             rng.integers(k, size=n)], target.palette, target.run.basis, target.run.order,
         np.ones(3), {})
+    residual = rng.normal(size=(n, 3, k)).astype(np.float32)
+    target.splats.residual = residual - residual.mean(2, keepdims=True)
     calls = []
     monkeypatch.setattr(target.run, "render", lambda *a, **k: calls.append(a))
     studio = serve(target)
@@ -185,7 +188,22 @@ def test_scene_mode_splats_are_drawn_by_the_browser(driver, serve, scene_run, mo
     with client.atomic():
         client.camera.position = client.camera.position + np.array([1.0, 0.5, 0.0])
     assert browser.wait_for(lambda: _changed(driver, recoloured), timeout=10) is not None
-    assert not calls  # neither the edit nor the move ran the network
+    studio._apply(lambda: [studio.editor.set_colour(i, c)
+                           for i, c in enumerate(target.palette[::-1])])
+    node = studio.view.viewports[client.client_id].splat_node
+    for step in ([0.0, 0.0, 1.0], [-2.0, 0.0, 0.0]):
+        with client.atomic():
+            client.camera.position = client.camera.position + np.array(step)
+
+        def for_this_camera():
+            eye = np.asarray(client.camera.position)
+            expected = np.round(target.splats.colours(target.palette[::-1], eye=eye) * 255)
+            return np.abs(node.rgbs.astype(float) - expected).max() <= 1
+
+        assert browser.wait_for(for_this_camera, timeout=10)
+    diffuse = np.round(target.splats.colours(target.palette[::-1]) * 255)
+    assert np.abs(node.rgbs.astype(float) - diffuse).max() > 10  # not the diffuse colours
+    assert not calls  # neither the edits nor the moves ran the network
 
 
 def _settled_frame(driver):
@@ -277,8 +295,9 @@ def test_a_page_from_another_origin_cannot_write_files(driver, serve, attacker_s
 
 
 def test_the_home_view_is_exactly_a_training_camera_roll_included(driver, serve, scene_run):
-    """A tab opens at the home camera as the browser reports it back: position, direction
-    and roll (a camera tilted 30 degrees about its axis stays tilted)."""
+    """A tab opens at the home camera as the browser reports it back, and stays there:
+    position, direction and roll (a camera tilted 30 degrees about its axis stays
+    tilted)."""
     from studio.pictures import camera_pose
     from studio.scene import SceneTarget
 
@@ -300,3 +319,5 @@ def test_the_home_view_is_exactly_a_training_camera_roll_included(driver, serve,
             pose[:3, 3], home[:3, 3], atol=1e-3)
 
     assert browser.wait_for(arrived, timeout=30), (camera_pose(client.camera), home)
+    time.sleep(1.5)  # and stays: the orbit's up, set later, once moved the camera
+    assert arrived(), (camera_pose(client.camera), home)

@@ -61,7 +61,7 @@ from ..run import (
 )
 from ..scene_box import SceneBox, scene_box, visual_hull
 from ..trainer import load_optimisers, next_iteration
-from .model import Splats, covariances
+from .model import Splats, covariances, with_residual
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
 from .strategy import Densification
@@ -103,9 +103,7 @@ class SplatModel(nn.Module):
         residual = _rest(basis, self.residual)
         if self.kind == Basis.ADDITIVE:  # on the simplex: the residual sums to zero
             residual = residual - residual.mean(1, keepdim=True)
-            weights = torch.clamp(weights + residual, min=0)
-            return weights / weights.sum(1, keepdim=True).clamp(min=1e-12)
-        return torch.clamp(weights + residual, min=0)
+        return with_residual(weights, residual, self.kind)
 
     def gaussians(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(S, 3, 3) covariances and (S,) opacities."""

@@ -5,6 +5,7 @@ docs/formats.md): recolouring stays ``weights @ basis`` per splat (docs/splats.m
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from palette_core.errors import InputError
 from palette_core.stack import NpzReader
 
 from ..regions import Region
+from .sh import sh_basis
 
 SPLAT_FORMAT = "palette-splats/1"
 
@@ -71,17 +73,32 @@ class Splats:
         return covariances(torch.as_tensor(self.rotations, dtype=torch.float64),
                            torch.as_tensor(self.scales, dtype=torch.float64)).numpy()
 
-    def colours(self, palette: np.ndarray | None = None,
-                regions: Sequence[Region] = ()) -> np.ndarray:
+    def colours(self, palette: np.ndarray | None = None, regions: Sequence[Region] = (),
+                eye: np.ndarray | None = None) -> np.ndarray:
         """(S, 3) float32 colour of every splat for ``palette`` (the run's by default); with
-        ``regions``, only the splats whose centres are inside one take it."""
+        ``regions``, only the splats whose centres are inside one take it. Seen from the
+        world position ``eye`` (3,), the residual is included (``view_weights``): the colours
+        a render from a camera there blends; without, the editable weights only."""
         palette = self.palette if palette is None else np.asarray(palette, np.float64)
         terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
-        colours = np.clip(self.weights @ terms, 0, 1)
+        colours = np.clip(self.view_weights(eye) @ terms, 0, 1)
         if regions:
             outside = self._outside(regions)
-            colours[outside] = self.colours()[outside]
+            colours[outside] = self.colours(eye=eye)[outside]
         return colours
+
+    def view_weights(self, eye: np.ndarray | None = None) -> np.ndarray:
+        """(S, M) float32 each splat's weights seen from the world position ``eye`` (3,):
+        the editable weights plus the residual in the direction from ``eye`` to the splat
+        (``with_residual``); the editable weights alone without ``eye`` or residual."""
+        if eye is None or self.residual is None:
+            return self.weights
+        directions = torch.nn.functional.normalize(
+            torch.as_tensor(self.centres - np.asarray(eye, np.float32)), dim=1)
+        degree = math.isqrt(self.residual.shape[1] + 1) - 1
+        rest = torch.einsum("sb,sbm->sm", sh_basis(directions, degree)[:, 1:],
+                            torch.as_tensor(self.residual))
+        return with_residual(torch.as_tensor(self.weights), rest, self.basis).numpy()
 
     def rest_colours(self, palette: np.ndarray | None = None,
                      regions: Sequence[Region] = ()) -> np.ndarray | None:
@@ -101,6 +118,16 @@ class Splats:
         """(S,) bool: the splats whose centres are in none of ``regions``."""
         return ~np.any([region.contains(self.centres) for region in regions], axis=0)
 
+
+
+def with_residual(weights: torch.Tensor, rest: torch.Tensor, basis: str) -> torch.Tensor:
+    """(S, M) weights seen from one direction: the editable ``weights`` (S, M) plus the
+    residual's values ``rest`` (S, M; summing to zero over the channels for the additive
+    basis), clamped at zero and, for the additive basis, put back on the simplex."""
+    weights = torch.clamp(weights + rest, min=0)
+    if basis == Basis.ADDITIVE:
+        return weights / weights.sum(1, keepdim=True).clamp(min=1e-12)
+    return weights
 
 
 def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:

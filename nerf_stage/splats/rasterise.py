@@ -39,8 +39,11 @@ FOV_CLAMP = 1.3  # of the view's half angle, where the Jacobian is taken at most
 
 @torch.no_grad()
 def render_splats(splats: Splats, poses: np.ndarray, camera: Intrinsics,
-                  progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Draw a bake from (N, 4, 4) ``poses`` (OpenGL camera-to-world) with ``camera``.
+                  progress: bool = False, reach: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Draw ``splats`` from (N, 4, 4) ``poses`` (OpenGL camera-to-world) with ``camera``,
+    each view with the weights seen from its camera (``Splats.view_weights``) and each
+    splat at most ``reach`` pixels from its centre (``draw``; a splat run's own, to draw
+    what it renders).
 
     Returns
     -------
@@ -48,18 +51,21 @@ def render_splats(splats: Splats, poses: np.ndarray, camera: Intrinsics,
         Composited palette weights, premultiplied by opacity (a weight render).
     opacity : (N, H, W) float32
     """
-    tensors = splat_tensors(splats)
+    centres, covariances, weights, opacities = splat_tensors(splats)
     h, w = camera.height, camera.width
     out_weights, out_opacity = [], []
     for pose in tqdm(poses, desc="draw splats", unit="view", disable=not progress):
-        weights, opacity = draw(*tensors, torch.as_tensor(pose), camera)
-        out_weights.append(weights.view(h, w, -1).float().numpy())
+        if splats.residual is not None:
+            weights = torch.as_tensor(splats.view_weights(pose[:3, 3]))
+        drawn, opacity = draw(centres, covariances, weights, opacities, torch.as_tensor(pose),
+                              camera, reach)
+        out_weights.append(drawn.view(h, w, -1).float().numpy())
         out_opacity.append(opacity.view(h, w).float().numpy())
     return np.stack(out_weights), np.stack(out_opacity)
 
 
 def splat_tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
-    """Centres, covariances, weights and opacities as float32 tensors."""
+    """Centres, covariances, editable weights and opacities as float32 tensors."""
     return (torch.as_tensor(splats.centres), torch.as_tensor(splats.covariances()).float(),
             torch.as_tensor(splats.weights), torch.as_tensor(splats.opacities))
 
