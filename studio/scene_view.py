@@ -104,13 +104,13 @@ class SceneView:
         for viewport in self.open_viewports():
             viewport.recolour()
 
-    def splat_colours(self, eye: np.ndarray | None = None) -> np.ndarray:
-        """(S, 3) the splats' colours for the palette shown, seen from the world position
-        ``eye`` (``Splats.colours``), inside the region only when it is on (a splat is in
-        when its centre is)."""
+    def splat_colours(self, weights: np.ndarray | None = None) -> np.ndarray:
+        """(S, 3) the splats' colours for the palette shown, of their (S, M) ``weights``
+        (``Splats.colours``), inside the region only when it is on (a splat is in when its
+        centre is)."""
         region = None if self.studio.before.value else self.region()
         return self.target.splats.colours(self.studio.shown_palette,
-                                          [] if region is None else [region], eye)
+                                          [] if region is None else [region], weights)
 
     def _drawer_changed(self) -> None:
         with self.studio.lock:
@@ -159,9 +159,11 @@ class Viewport:
     def __init__(self, studio, view: SceneView, client):
         self.studio, self.view, self.target, self.client = studio, view, view.target, client
         splats = self.target.splats
+        self.seen = (None, None)  # the camera position the splats' weights were seen from
         self.splat_node = None if splats is None else client.scene.add_gaussian_splats(
-            "/splats", splats.centres, view.covariances, self.view.splat_colours(self.eye()),
-            splats.opacities[:, None], visible=view.splats_drawn)
+            "/splats", splats.centres, view.covariances,
+            self.view.splat_colours(self.splat_weights()), splats.opacities[:, None],
+            visible=view.splats_drawn)
         self.render = None  # the WeightRender on screen
         self.drawn = (0, 0.0)  # rows of the last view drawn, and when (time.perf_counter)
         self.moved = threading.Event()
@@ -175,9 +177,13 @@ class Viewport:
         self.running = False
         self.moved.set()
 
-    def eye(self) -> np.ndarray:
-        """(3,) the tab's camera position, world coordinates."""
-        return np.asarray(self.client.camera.position, np.float64)
+    def splat_weights(self) -> np.ndarray:
+        """(S, M) the splats' weights seen from the tab's camera (``Splats.view_weights``),
+        kept until it moves: a palette edit only recolours them."""
+        eye = np.asarray(self.client.camera.position, np.float64)
+        if self.seen[0] is None or not np.array_equal(eye, self.seen[0]):
+            self.seen = (eye, self.target.splats.view_weights(eye))
+        return self.seen[1]
 
     def intrinsics(self, rows: int | None = None):
         return self.target.intrinsics(bounded_aspect(self.client.camera),
@@ -221,7 +227,7 @@ class Viewport:
         if self.splat_node is not None:
             self.splat_node.visible = self.view.splats_drawn
             if self.view.splats_drawn:
-                self.splat_node.rgbs = self.view.splat_colours(self.eye())
+                self.splat_node.rgbs = self.view.splat_colours(self.splat_weights())
         if self.render is None:
             return
         region = None if self.studio.before.value else self.view.region()

@@ -195,7 +195,7 @@ def test_bake_and_export_from_the_command_line(scene_run, cornell_run, tmp_path,
     expect_error(main, ["bake", str(scene_run), "-o", str(tmp_path / "x.npz"),
                         "--max-splats", "0"], "max splats", capsys)
     run = tmp_path / "run"  # by default the bake goes into the run, where export finds it
-    shutil.copytree(scene_run, run)
+    shutil.copytree(scene_run, run, ignore=shutil.ignore_patterns("splats.npz"))
     assert main(["bake", str(run), "--refine-steps", "2"]) == 0
     assert main(["export", str(run), "-o", str(tmp_path / "run.ply")]) == 0
     assert read_ply(tmp_path / "run.ply").shape == (len(read_splats(run / "splats.npz")),)

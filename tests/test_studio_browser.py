@@ -197,7 +197,9 @@ def test_scene_mode_splats_are_drawn_by_the_browser(driver, serve, scene_run, mo
 
         def for_this_camera():
             eye = np.asarray(client.camera.position)
-            expected = np.round(target.splats.colours(target.palette[::-1], eye=eye) * 255)
+            weights = target.splats.view_weights(eye)
+            expected = np.round(target.splats.colours(target.palette[::-1], weights=weights)
+                                * 255)
             return np.abs(node.rgbs.astype(float) - expected).max() <= 1
 
         assert browser.wait_for(for_this_camera, timeout=10)

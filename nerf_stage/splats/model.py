@@ -74,17 +74,18 @@ class Splats:
                            torch.as_tensor(self.scales, dtype=torch.float64)).numpy()
 
     def colours(self, palette: np.ndarray | None = None, regions: Sequence[Region] = (),
-                eye: np.ndarray | None = None) -> np.ndarray:
+                weights: np.ndarray | None = None) -> np.ndarray:
         """(S, 3) float32 colour of every splat for ``palette`` (the run's by default); with
-        ``regions``, only the splats whose centres are inside one take it. Seen from the
-        world position ``eye`` (3,), the residual is included (``view_weights``): the colours
-        a render from a camera there blends; without, the editable weights only."""
+        ``regions``, only the splats whose centres are inside one take it. ``weights`` (S, M)
+        are those to colour: ``view_weights(eye)`` for a camera at ``eye``, the editable
+        weights by default."""
         palette = self.palette if palette is None else np.asarray(palette, np.float64)
+        weights = self.weights if weights is None else weights
         terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
-        colours = np.clip(self.view_weights(eye) @ terms, 0, 1)
+        colours = np.clip(weights @ terms, 0, 1)
         if regions:
             outside = self._outside(regions)
-            colours[outside] = self.colours(eye=eye)[outside]
+            colours[outside] = self.colours(weights=weights)[outside]
         return colours
 
     def view_weights(self, eye: np.ndarray | None = None) -> np.ndarray:
