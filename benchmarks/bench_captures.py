@@ -60,6 +60,7 @@ from nerf_stage.backbones import BACKBONES
 from nerf_stage.config import TrainConfig
 from nerf_stage.data import load_dataset
 from nerf_stage.metrics import image_scores
+from nerf_stage.points import POINTS_FILE, write_points
 from nerf_stage.run import load_run
 
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
@@ -133,7 +134,8 @@ def undistorted_beforehand(capture: Path, out: Path) -> Path:
 
 def small_capture(capture: Path, out: Path, downscale: int) -> Path:
     """``capture`` at 1/``downscale`` of its size, undistorted, in PNGs with its splits
-    named in ``transforms.json`` (written once), and its weight stack."""
+    named in ``transforms.json`` (written once), its sparse points where it has them, and
+    its weight stack."""
     if not (out / "weights.npz").is_file():
         data = load_dataset(capture, downscale=downscale)
         (out / "images").mkdir(parents=True, exist_ok=True)
@@ -146,10 +148,15 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
                            "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx,
                            "cy": camera.cy})
             splits["test" if data.splits[i] == "test" else "train"].append(path)
+        points = {}
+        if data.points is not None:  # the start of splat runs (nerfstudio's sparse_pc.ply)
+            write_points(data.points, out / POINTS_FILE)
+            points = {"ply_file_path": POINTS_FILE}
         (out / "transforms.json").write_text(json.dumps({
             "camera_model": "PINHOLE", "w": data.intrinsics.width, "h": data.intrinsics.height,
             "frames": frames, "train_filenames": splits["train"],
-            "val_filenames": splits["test"], "test_filenames": splits["test"]}, indent=1))
+            "val_filenames": splits["test"], "test_filenames": splits["test"], **points},
+            indent=1))
         _run([BIN / "palette-decompose", out / "images", "-k", "6", "-o", out / "weights.npz",
               "--force"],
              "decompose")

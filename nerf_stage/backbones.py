@@ -147,9 +147,10 @@ class SplatConfig:
     an iteration; 3D Gaussian splatting's recipe, ``splats.backbone``)."""
 
     initial: int = 20_000
-    """Splats at the start (at most one for four pixels of a training image), at random in
-    the scene box (and in the contracted shell around an unbounded one: far splats for
-    what lies beyond)."""
+    """Splats at the start: at the capture's sparse points where it has them (at most this
+    many of them, in their colours), else at random in the scene box (at most one for four
+    pixels of a training image; and in the contracted shell around an unbounded box: far
+    splats for what lies beyond)."""
     max_splats: int = 300_000
     """Densification never grows the splats beyond this."""
     sh_degree: int = 3

@@ -25,6 +25,7 @@ from palette_core.errors import InputError, first_line
 
 from .cameras import Intrinsics, checked_camera
 from .distortion import Distortion
+from .points import Points
 
 #: What pycolmap's reader may take on a model in a child process (``_check_readable``).
 READ_SECONDS = 10
@@ -188,8 +189,29 @@ def model_frames(reconstruction, source: str):
     """The registered images of ``reconstruction`` by name: (N,) names, (N, 4, 4)
     camera-to-world poses (OpenGL axes, normalised frame: ``normalised``), N pinhole
     cameras and their N distortions (``camera_lens``)."""
+    images = _registered(reconstruction)
+    cameras, lenses = zip(*(camera_lens(image.camera, source) for image in images))
+    return ([image.name for image in images], normalised(_world_poses(images)), list(cameras),
+            list(lenses))
+
+
+def model_points(reconstruction) -> Points:
+    """The 3D points of ``reconstruction`` in the frame of ``model_frames``' poses."""
+    rotation, centre, radius = normalisation(_world_poses(_registered(reconstruction)))
+    points = list(reconstruction.points3D.values())
+    positions = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
+    colours = np.array([p.color for p in points], np.float32).reshape(-1, 3) / 255.0
+    return Points((positions - centre) @ rotation.T / radius, colours)
+
+
+def _registered(reconstruction) -> list:
+    """The images of ``reconstruction`` that have a pose, by name."""
     images = sorted(reconstruction.images.values(), key=lambda image: image.name)
-    images = [image for image in images if image.has_pose]
+    return [image for image in images if image.has_pose]
+
+
+def _world_poses(images) -> np.ndarray:
+    """(N, 4, 4) camera-to-world poses of pycolmap ``images``, OpenGL axes, COLMAP's frame."""
     poses = []
     for image in images:
         world_to_camera = image.cam_from_world().matrix()  # (3, 4)
@@ -197,15 +219,24 @@ def model_frames(reconstruction, source: str):
         pose[:3, :3] = world_to_camera[:, :3].T @ _FLIP
         pose[:3, 3] = -world_to_camera[:, :3].T @ world_to_camera[:, 3]
         poses.append(pose)
-    poses = np.array(poses)
-    cameras, lenses = zip(*(camera_lens(image.camera, source) for image in images))
-    return [image.name for image in images], normalised(poses), list(cameras), list(lenses)
+    return np.array(poses)
+
+
+def normalisation(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The similarity ``normalised`` applies to (N, 4, 4) camera-to-world ``poses``: a point
+    x goes to ``rotation @ (x - centre) / radius``. Returns (3, 3) rotation, (3,) centre and
+    radius: it turns the poses' mean up vector to +y, centres them on their mean position
+    and puts the farthest camera at distance 1."""
+    up = poses[:, :3, 1].mean(0)
+    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-9 else np.array([0.0, 1.0, 0.0])
+    centre = poses[:, :3, 3].mean(0)
+    radius = np.linalg.norm(poses[:, :3, 3] - centre, axis=1).max()
+    return (_rotation_onto(up, np.array([0.0, 1.0, 0.0])), centre,
+            float(radius) if radius > 1e-12 else 1.0)
 
 
 def normalised(poses: np.ndarray) -> np.ndarray:
-    """(N, 4, 4) camera-to-world ``poses`` moved by the similarity that centres them on
-    their mean position, turns their mean up vector to +y and puts the farthest camera at
-    distance 1.
+    """(N, 4, 4) camera-to-world ``poses`` moved by their ``normalisation``.
 
     Examples
     --------
@@ -213,14 +244,10 @@ def normalised(poses: np.ndarray) -> np.ndarray:
     >>> normalised(poses)[:, :3, 3].tolist()
     [[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
     """
-    up = poses[:, :3, 1].mean(0)
-    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-9 else np.array([0.0, 1.0, 0.0])
-    rotation = _rotation_onto(up, np.array([0.0, 1.0, 0.0]))
-    centre = poses[:, :3, 3].mean(0)
-    radius = np.linalg.norm(poses[:, :3, 3] - centre, axis=1).max()
+    rotation, centre, radius = normalisation(poses)
     moved = poses.copy()
     moved[:, :3, :3] = rotation @ poses[:, :3, :3]
-    moved[:, :3, 3] = (poses[:, :3, 3] - centre) @ rotation.T / (radius if radius > 1e-12 else 1)
+    moved[:, :3, 3] = (poses[:, :3, 3] - centre) @ rotation.T / radius
     return moved
 
 

@@ -45,8 +45,9 @@ from palette_core.io import open_image
 from palette_core.stack import WeightStack
 
 from .cameras import Intrinsics, checked_camera, focal_length
-from .colmap import find_model, model_frames, read_model
+from .colmap import find_model, model_frames, model_points, read_model
 from .distortion import Distortion, undistort, undistorted_camera
+from .points import Points, read_points
 
 SPLITS = ("train", "val", "test")
 NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
@@ -106,6 +107,9 @@ class Dataset:
     lenses : list of Lens or None
         Each frame's lens at the files' size, where a lens distorts: the images (and a
         stack's weights, ``join_weights``) are undistorted through it.
+    points : Points or None
+        The capture's sparse points, in the poses' frame, where it has them
+        (``points``: a nerfstudio ``ply_file_path``, a COLMAP model's ``points3D``).
     """
 
     root: Path
@@ -122,6 +126,7 @@ class Dataset:
     frame_intrinsics: list[Intrinsics] | None = None
     off_ring: np.ndarray | None = None
     lenses: list[Lens] | None = None
+    points: Points | None = None
 
     def __post_init__(self):
         if self.off_ring is None:
@@ -167,14 +172,16 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
         focal = focal_length(width, angle)
         frame_intrinsics = [checked_camera(str(root / "transforms_train.json"), width, height,
                                            focal, focal, width / 2, height / 2)]
-        distortions = [Distortion()]
+        distortions, points = [Distortion()], None
     elif (root / "transforms.json").is_file():
         layout = "nerfstudio"
-        names, splits, poses, frame_intrinsics, distortions, off_ring = _read_nerfstudio(
-            root, frames_outside)
+        names, splits, poses, frame_intrinsics, distortions, off_ring, points = (
+            _read_nerfstudio(root, frames_outside))
     elif (model := find_model(root)) is not None:
         layout = "colmap"
-        names, poses, frame_intrinsics, distortions = model_frames(read_model(model), str(root))
+        reconstruction = read_model(model)
+        names, poses, frame_intrinsics, distortions = model_frames(reconstruction, str(root))
+        points = model_points(reconstruction)
         names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
                  for name in names]
         splits, off_ring = _holdout(len(names)), None
@@ -199,7 +206,7 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
                    alpha, background, layout, frames_outside, downscale, frame_intrinsics,
-                   off_ring, lenses)
+                   off_ring, lenses, points if points is not None and len(points) else None)
 
 
 def _lenses(cameras: list[Intrinsics], distortions: list[Distortion], n: int,
@@ -417,8 +424,14 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
     if len(sizes) > 1:
         listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
         raise InputError(f"{path}: frames of different image sizes ({listed}) are not supported")
+    points = None
+    if "ply_file_path" in data:
+        if not isinstance(data["ply_file_path"], str):
+            raise InputError(f"{path}: ply_file_path must be a file name")
+        points = read_points(root / _frame_path(data["ply_file_path"], f"{path}: ply_file_path",
+                                                root, frames_outside))
     return (names, _nerfstudio_splits(data, names, path), np.array(poses), cameras, lenses,
-            np.array(off_ring))
+            np.array(off_ring), points)
 
 
 def _nerfstudio_lens(fields: dict, where) -> Distortion:

@@ -10,7 +10,8 @@ pair; incremental, COLMAP's classic, on request), and undistortion where the cam
 distortion moves a pixel by more than ``colmap.MAX_DISTORTION``. A folder that already
 holds a COLMAP model is converted without running structure from motion. The capture is
 written in nerfstudio's layout (``images/`` and ``transforms.json``, in the normalised
-frame of ``colmap.model_frames``), with the COLMAP model of its images in ``sparse/0``.
+frame of ``colmap.model_frames``, with its sparse points in ``sparse_pc.ply``, as
+nerfstudio names them), and the COLMAP model of its images in ``sparse/0``.
 docs/capture.md.
 """
 
@@ -38,8 +39,10 @@ from .colmap import (
     find_model,
     import_pycolmap,
     model_frames,
+    model_points,
     read_model,
 )
+from .points import POINTS_FILE, write_points
 
 MIN_PHOTOS = 3  # fewer cannot make a capture to train on
 MIN_REGISTERED = 0.5  # share of the photos that must register
@@ -183,6 +186,7 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
                 shutil.copyfile(photos / name, images / name)
             seconds["undistort and copy"] = time.perf_counter() - start
             _write_transforms(staging / "transforms.json", reconstruction, str(source))
+            write_points(model_points(reconstruction), staging / POINTS_FILE)
             (staging / "sparse" / "0").mkdir(parents=True)
             reconstruction.write(staging / "sparse" / "0")  # binary, for COLMAP's tools
     return report
@@ -260,7 +264,8 @@ def _undistort(pycolmap, model: Path, photos: Path, names: list[str], work: Path
 
 
 def _write_transforms(path: Path, reconstruction, source: str) -> None:
-    """``transforms.json`` (nerfstudio layout, a camera per frame) of ``reconstruction``."""
+    """``transforms.json`` (nerfstudio layout, a camera per frame, the points'
+    ``ply_file_path``) of ``reconstruction``."""
     names, poses, cameras, _ = model_frames(reconstruction, source)  # undistorted: pinhole
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) > 1:
@@ -274,4 +279,5 @@ def _write_transforms(path: Path, reconstruction, source: str) -> None:
         frames.append(frame)
     path.write_text(json.dumps({
         "camera_model": "PINHOLE", "w": first.width, "h": first.height, "fl_x": first.fx,
-        "fl_y": first.fy, "cx": first.cx, "cy": first.cy, "frames": frames}, indent=1))
+        "fl_y": first.fy, "cx": first.cx, "cy": first.cy, "ply_file_path": POINTS_FILE,
+        "frames": frames}, indent=1))

@@ -97,6 +97,33 @@ def test_photos_register_into_a_capture_folder(corner, capture):
 
 
 
+def test_a_capture_has_its_sparse_points_in_the_frame_of_its_poses(capture):
+    """``nerf-stage poses`` writes the model's points (``sparse_pc.ply``) where the
+    capture's cameras see them: projected into each photo, a point has the photo's colour
+    there (a wrong frame would put it on unrelated texture); the COLMAP model read directly
+    gives the same points."""
+    dataset = load_dataset(capture)
+    points = dataset.points
+    assert points is not None and len(points) > 100
+    errors = []
+    for i, (pose, image) in enumerate(zip(dataset.poses, dataset.images)):
+        local = (points.positions - pose[:3, 3]) @ pose[:3, :3]  # camera axes, looking down -z
+        depth, camera = -local[:, 2], dataset.camera(i)
+        front = depth > 1e-3
+        x = camera.fx * local[front, 0] / depth[front] + camera.cx
+        y = camera.cy - camera.fy * local[front, 1] / depth[front]
+        seen = (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+        pixels = image[y[seen].astype(int), x[seen].astype(int)]
+        errors.append(np.abs(pixels - points.colours[front][seen]).mean(1))
+    assert np.median(np.concatenate(errors)) < 0.04
+    project = capture.parent / "colmap"
+    (project / "sparse").mkdir(parents=True, exist_ok=True)
+    shutil.copytree(capture / "sparse" / "0", project / "sparse" / "0", dirs_exist_ok=True)
+    shutil.copytree(capture / "images", project / "images", dirs_exist_ok=True)
+    direct = load_dataset(project).points
+    assert np.allclose(direct.positions, points.positions, atol=1e-6)
+
+
 def test_a_walk_forward_registers_with_sequential_matching(tmp_path):
     """Eight frames walking towards the corner (forward motion, the parallax a street
     sequence has; weaving, so that the centres fix the similarity of ``pose_errors``):

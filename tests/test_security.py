@@ -134,6 +134,31 @@ def test_a_capture_whose_photos_link_outside_is_refused(tmp_path, rng, capsys):
         shutil.rmtree(tmp_path / "elsewhere")
 
 
+@pytest.mark.parametrize("name, content, message", [
+    ("../points.ply", None, "lies outside"),
+    (7, None, "ply_file_path must be a file name"),
+    ("points.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 999999999\n"
+                   b"property float x\nproperty float y\nproperty float z\nend_header\n",
+     "not a PLY of points"),
+    ("points.ply", b"not a ply at all", "not a PLY of points"),
+])
+def test_a_capture_whose_points_lie_is_refused(tmp_path, rng, name, content, message):
+    """A ``ply_file_path`` out of the capture, of the wrong type, or naming a file whose
+    header claims more points than it holds: one InputError each."""
+    pytest.importorskip("torch")
+    from nerf_stage.data import load_dataset
+
+    capture = nerfstudio_capture(tmp_path / "c", rng)
+    (tmp_path / "points.ply").write_bytes(b"ply\n")
+    if content is not None:
+        (capture / name).write_bytes(content)
+    data = json.loads((capture / "transforms.json").read_text())
+    data["ply_file_path"] = name
+    (capture / "transforms.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match=message):
+        load_dataset(capture)
+
+
 # 3. Parameters without bounds ----------------------------------------------------------------
 
 def test_a_feather_wider_than_the_images_is_refused(stack_files, tmp_path):

@@ -387,3 +387,24 @@ def test_bounded_scenes_start_their_splats_in_the_visual_hull():
     means = initial_splats(box, 50, 1, torch.Generator().manual_seed(0), hull)["means"]
     low, high = np.array([0.5, -1.0, -0.5]) * box.extent, np.array([1.0, -0.5, 0.0]) * box.extent
     assert ((means.numpy() >= low - 1e-6) & (means.numpy() <= high + 1e-6)).all()
+
+
+def test_a_capture_with_sparse_points_starts_its_splats_there():
+    """3D Gaussian splatting's start: splats at (at most ``n`` of) the points, in their
+    colours, as wide as their neighbours are far."""
+    from nerf_stage.points import Points
+    from nerf_stage.scene_box import SceneBox
+    from nerf_stage.splats.backbone import initial_splats
+    from nerf_stage.splats.sh import SH_C0
+
+    box = SceneBox(np.array([1.0, 2.0, 3.0]), np.array([2.0, 1.0, 1.0]))
+    rng = np.random.default_rng(0)
+    points = Points(box.centre + rng.uniform(-1, 1, (40, 3)), rng.uniform(size=(40, 3)))
+    start = initial_splats(box, 30, 2, torch.Generator().manual_seed(0), points=points)
+    assert len(start["means"]) == 30
+    world = start["means"].numpy() * box.scale + box.centre
+    nearest = np.abs(world[:, None] - points.positions[None]).sum(-1).argmin(1)
+    assert np.allclose(world, points.positions[nearest], atol=1e-5)
+    colours = SH_C0 * start["colours"].numpy() + 0.5
+    assert np.allclose(colours, points.colours[nearest], atol=1e-5)
+    assert len(set(nearest.tolist())) == 30 and start["colours_rest"].shape == (30, 8, 3)

@@ -47,6 +47,7 @@ from ..data import Dataset, join_weights
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
 from ..losses import recorded_rgb_loss, ssim_loss, weight_loss
 from ..metrics import psnr_from_mse
+from ..points import Points
 from ..regions import KEEP_WEIGHT, PixelSamples
 from ..run import (
     CHECKPOINT,
@@ -71,6 +72,7 @@ INITIAL_OPACITY = 0.1
 #: At most one starting splat for this many pixels of a training image: more, at a low
 #: opacity, all cover every pixel (hundreds of pairs a pixel on a tiny image).
 PIXELS_PER_INITIAL = 4
+MIN_POINTS = 4  # a capture with fewer sparse points starts at random
 HULL_CELLS = 64  # along each side of the box: the visual hull that bounded scenes start in
 FAR_SHELL = 1.9  # far splats start in the contracted shell out to this (10 box half sizes)
 
@@ -232,11 +234,32 @@ def normalised_pose(pose: np.ndarray, box: SceneBox, device) -> torch.Tensor:
 
 
 def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generator,
-                   hull: np.ndarray | None = None) -> dict:
-    """``n`` splats at random in the box (in its ``hull`` cells (X, Y, Z) when given; half of
-    them, in an unbounded scene, in its contracted shell out to ``FAR_SHELL``), grey,
-    ``INITIAL_OPACITY`` opaque, as wide as the mean distance to their three nearest
-    neighbours, with colours of ``degree``."""
+                   hull: np.ndarray | None = None, points: Points | None = None) -> dict:
+    """Splats to start from, ``INITIAL_OPACITY`` opaque, as wide as the mean distance to
+    their three nearest neighbours, with colours of ``degree``: at most ``n`` of
+    the capture's ``points`` in their colours (3D Gaussian splatting's start), or else ``n``
+    grey ones at random in the box (in its ``hull`` cells (X, Y, Z) when given; half of
+    them, in an unbounded scene, in its contracted shell out to ``FAR_SHELL``)."""
+    if points is not None:
+        pick = torch.randperm(len(points), generator=generator)[:n].numpy()
+        means = torch.as_tensor((points.positions[pick] - box.centre) / box.scale,
+                                dtype=torch.float32)
+        colours = (torch.as_tensor(points.colours[pick]) - 0.5) / SH_C0
+    else:
+        means = _random_means(box, n, generator, hull)
+        colours = torch.zeros(n, 3)
+    distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:]
+    scale = np.log(np.maximum(distance.mean(1), 1e-7))
+    n = len(means)
+    return {"means": means, "scales": torch.as_tensor(scale, dtype=torch.float32)[:, None]
+            .repeat(1, 3), "quats": torch.tensor([1.0, 0, 0, 0]).repeat(n, 1),
+            "opacities": torch.full((n,), math.log(INITIAL_OPACITY / (1 - INITIAL_OPACITY))),
+            "colours": colours, "colours_rest": torch.zeros(n, sh_terms(degree) - 1, 3)}
+
+
+def _random_means(box: SceneBox, n: int, generator: torch.Generator,
+                  hull: np.ndarray | None) -> torch.Tensor:
+    """(n, 3) random positions in the box (``initial_splats``)."""
     far = n // 2 if box.unbounded else 0
     extent = torch.as_tensor(box.extent, dtype=torch.float32)
     unit = torch.rand(n - far, 3, generator=generator)  # where in the box, or in a cell
@@ -250,13 +273,7 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
         norm = shell.abs().amax(1, keepdim=True).clamp(min=1e-6)
         radius = 1 + torch.rand(far, 1, generator=generator) * (FAR_SHELL - 1)
         means = torch.cat([means, shell / norm / (EXTENT - radius)])  # uncontracted
-    distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:]
-    scale = torch.as_tensor(np.log(np.maximum(distance.mean(1), 1e-7)), dtype=torch.float32)
-    return {"means": means, "scales": scale[:, None].repeat(1, 3),
-            "quats": torch.tensor([1.0, 0, 0, 0]).repeat(n, 1),
-            "opacities": torch.full((n,), math.log(INITIAL_OPACITY / (1 - INITIAL_OPACITY))),
-            "colours": torch.zeros(n, 3),
-            "colours_rest": torch.zeros(n, sh_terms(degree) - 1, 3)}
+    return means
 
 
 def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLike,
@@ -289,14 +306,17 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,
                            stack_meta=stack.meta, frames_outside=dataset.frames_outside,
                            downscale=dataset.downscale)
+        points = dataset.points if dataset.points is not None and len(
+            dataset.points) >= MIN_POINTS else None
         pixels = min(dataset.camera(i).width * dataset.camera(i).height for i in train_ids)
-        initial = max(4, min(settings.initial, pixels // PIXELS_PER_INITIAL))
+        initial = (settings.initial if points is not None
+                   else max(4, min(settings.initial, pixels // PIXELS_PER_INITIAL)))
         hull = None
-        if not box.unbounded and (dataset.alpha[train_ids] < 1).any():
+        if points is None and not box.unbounded and (dataset.alpha[train_ids] < 1).any():
             hull = visual_hull(box, np.full(3, HULL_CELLS), dataset.poses[train_ids],
                                dataset.cameras(train_ids), dataset.alpha[train_ids])
-        model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, hull),
-                           RGB, settings.sh_degree)
+        model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, hull,
+                                          points), RGB, settings.sh_degree)
         run = SplatRun(config, box, dataset.intrinsics, np.asarray(stack.palette, np.float64),
                        stack.basis, stack.order, record, model.to(device))
     run.record.weights = weights_path
