@@ -23,7 +23,7 @@ from .checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, m
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
 CONFIG_ENV = "NERF_STAGE_CONFIG"
 #: How many times finer than the field's grid baked renders read the colour part by default
-#: (``render --baked``; the README measures it).
+#: (``render --baked``; docs/benchmarks.md measures it).
 BAKE_FACTOR = 4
 
 

@@ -44,7 +44,7 @@ _SLACK_PENALTY = 1e6
 #: Slack above this means the edge's LP is infeasible (the collapse lets colours out).
 _SLACK_TOL = 1e-9
 #: One step collapses at most (vertices above target) / this many edges: fewer steps
-#: than one edge at a time, with the same error (README, "How it works").
+#: than one edge at a time, with the same error (docs/method.md).
 _BATCH_DIVISOR = 12
 
 
