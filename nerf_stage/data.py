@@ -188,8 +188,8 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     else:
         raise InputError(f"{root} holds neither transforms_train.json (Blender layout), "
                          "transforms.json (nerfstudio layout) nor a COLMAP model (sparse/0): "
-                         "make one with nerf-stage poses PHOTOS -o DIR or nerf-stage simulate "
-                         "SCENE DIR, or capture one")
+                         "make one from photos with nerf-stage poses or from a scene with "
+                         "nerf-stage simulate")
     lenses = _lenses(frame_intrinsics, distortions, len(names), root)
     frame_intrinsics = [lens.target for lens in lenses] if lenses else frame_intrinsics
     intrinsics = frame_intrinsics[0]
@@ -379,8 +379,8 @@ def _frame_path(name: str, where: str, root: Path, frames_outside: bool) -> str:
     path = PurePosixPath(os.path.normpath(name))
     if not frames_outside and (path.is_absolute() or path.parts[:1] == ("..",)
                                or not (root / path).resolve().is_relative_to(root.resolve())):
-        raise InputError(f"{where}: file_path {name!r} lies outside {root} "
-                         "(--frames-outside reads it)")
+        raise InputError(f"{where}: file_path {name!r} lies outside {root}",
+                         fixes=[("frames_outside", "to read it")])
     return path.as_posix()
 
 

@@ -114,7 +114,7 @@ class WeightRender:
         places = [r for r in regions if isinstance(r, Region)]
         if places and self.samples is None:
             raise InputError("this render kept no samples to split by regions: render it "
-                             "again with --region")
+                             "again with a region")
         share = (self.samples.shares(places, self.opacity.shape) if places
                  else np.zeros(self.opacity.shape, np.float32))
         for region in regions:
@@ -135,7 +135,7 @@ def render_poses(run: Run, dataset, split: str | None, orbit: int | None):
     train = dataset.indices("train")
     if orbit is not None:
         if not 1 <= orbit <= MAX_ORBIT:
-            raise InputError(f"--orbit must be in [1, {MAX_ORBIT}], got {orbit}")
+            raise InputError(f"must be in [1, {MAX_ORBIT}], got {orbit}", "orbit")
         return ([f"orbit_{i:03d}" for i in range(orbit)],
                 orbit_poses(dataset.poses[train], orbit, run.box.centre), None)
     ids = dataset.indices(split)
@@ -281,7 +281,8 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
         raise InputError(f"unknown template {unknown[0]!r}; choose one of "
                          f"{BEST}, {', '.join(TEMPLATES)}")
     if regions and not (palette_files or templates):
-        raise InputError("a region needs a palette to apply inside it (--palette or --harmonize)")
+        raise InputError("a region needs a palette to apply inside it",
+                         fixes=[("palette", "to give one"), ("harmonize", "to fit one")])
     for region in regions:
         if isinstance(region, ColourRegion):
             region.selection().check(len(run.palette))
@@ -297,14 +298,14 @@ def render_edits(rundir: str | os.PathLike, out: str | os.PathLike,
     cache = out / RENDER_FILE
     render = read_render(cache) if cache.is_file() else None
     if render is not None and render.source != source and not force:
-        raise InputError(f"{cache} holds another render ({render.source.get('views')} of "
-                         f"{render.source.get('run')}); use --force to replace it")
+        raise OutputExists(f"{cache} holds another render ({render.source.get('views')} "
+                           f"of {render.source.get('run')})", "to replace it")
     labels = list(palettes) + [f"harmonized-{t}" for t in templates]
     outputs = [out / label for label in labels] + [out / f"{label}.gif" for label in labels
                                                    if orbit is not None]
     existing = [str(path) for path in outputs if path.exists()]
     if existing and not force:
-        raise OutputExists(f"output {existing[0]} already exists (use --force to overwrite)")
+        raise OutputExists(f"output {existing[0]} already exists")
     places = any(isinstance(region, Region) for region in regions)
     reused = (render is not None and render.source == source
               and (render.samples is not None or not places))

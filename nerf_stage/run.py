@@ -255,10 +255,10 @@ def check_rundir(rundir: Path, resume: bool, force: bool) -> None:
     (``force`` starts afresh over one)."""
     exists = (rundir / CHECKPOINT).is_file()
     if resume and not exists:
-        raise InputError(f"--resume: {rundir} holds no checkpoint")
+        raise InputError(f"{rundir} holds no checkpoint", "resume")
     if exists and not (resume or force):
-        raise InputError(f"{rundir} already holds a run (use --resume to continue it or "
-                         "--force to start afresh)")
+        raise InputError(f"{rundir} already holds a run",
+                         fixes=[("resume", "to continue it"), ("force", "to start afresh")])
 
 
 def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator) -> None:
@@ -342,7 +342,8 @@ def restore(run: Run, state: dict) -> None:
             run.appearance.load_state_dict(state["appearance"])
         except (KeyError, RuntimeError, TypeError, AttributeError):
             raise InputError("the checkpoint holds no colour transforms of the training "
-                             "images as this run needs; start afresh with --force") from None
+                             "images as this run needs",
+                             fixes=[("force", "to start afresh")]) from None
     saved = run_record(state)
     run.record.iteration, run.record.log = saved.iteration, saved.log
 

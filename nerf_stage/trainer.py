@@ -102,7 +102,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         weights = weights * dataset.alpha[train_ids, ..., None]
     state = read_checkpoint(rundir / CHECKPOINT) if resume else None
     if resume and TrainConfig.from_dict(state["config"]) != config:
-        raise InputError(f"{rundir} was trained with another config; start afresh with --force")
+        raise InputError(f"{rundir} was trained with another config",
+                         fixes=[("force", "to start afresh")])
     box = (box_from_dict(state["box"], str(rundir / CHECKPOINT)) if resume else
            _scene_box(config, dataset, stack, train_ids, weights, device, progress))
     run = _new_run(config, box, dataset, stack, train_ids, device)
@@ -397,7 +398,7 @@ def load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
                         raise ValueError("moments of another shape")
     except (ValueError, KeyError, TypeError):
         raise InputError(f"{rundir} was trained with other optimisers than its parameters "
-                         "take; start afresh with --force") from None
+                         "take", fixes=[("force", "to start afresh")]) from None
 
 
 def _decay_learning_rates(optimisers: list, config: TrainConfig, it: int) -> None:

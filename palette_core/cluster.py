@@ -32,9 +32,9 @@ def check_workers(workers: int | None, scheduler: str | None) -> None:
         return
     cores = os.cpu_count() or 1
     if scheduler is not None:
-        raise InputError("--workers starts a local cluster: give it or --scheduler, not both")
+        raise InputError("starts a local cluster: give it or a scheduler, not both", "workers")
     if not 1 <= workers <= cores:
-        raise InputError(f"--workers must be 1 to {cores} (this machine's cores), got {workers}")
+        raise InputError(f"must be 1 to {cores} (this machine's cores), got {workers}", "workers")
 
 
 def scheduler_address(address: str) -> tuple[str, str, int]:
@@ -51,8 +51,8 @@ def scheduler_address(address: str) -> tuple[str, str, int]:
     except ValueError:
         port = None
     if parts.scheme not in SCHEMES or not parts.hostname or port is None or parts.path:
-        raise InputError(f"--scheduler must be tcp://HOST:PORT or tls://HOST:PORT, got "
-                         f"{address!r}")
+        raise InputError(f"must be tcp://HOST:PORT or tls://HOST:PORT, got {address!r}",
+                         "scheduler")
     return parts.scheme, parts.hostname, port
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from .basis import Basis
 from .colour_counts import ColourCounter, ColourIndex, decode_codes, merge_counts
-from .errors import InputError, OutputExists
+from .errors import InputError
 from .io import DEFAULT_MAX_PIXELS
 from .outputs import atomic_outputs, check_apart, check_writable
 from .palette_file import palette_paths, write_palette_json
@@ -142,10 +142,10 @@ def decompose_collection(inputs: list, output: str, k: int | None = None,
     partial = partial_store(output)
     unfinished = is_stack_store(partial)
     if resume and not unfinished:
-        raise InputError(f"--resume: {output} has no unfinished store to finish")
+        raise InputError(f"{output} has no unfinished store to finish", "resume")
     if unfinished and not (resume or force):
-        raise OutputExists(f"output {output} has an unfinished store (use --resume to finish "
-                           "it or --force to start afresh)")
+        raise InputError(f"output {output} has an unfinished store",
+                         fixes=[("resume", "to finish it"), ("force", "to start afresh")])
     if not resume and os.path.lexists(partial):
         if not unfinished:
             raise InputError(f"{partial} is in the way of the output and is not a weight "
@@ -314,8 +314,8 @@ def _open_store(output, collection: Collection, method: str, dtype: str, resume:
         store = zarr.open_group(output, mode="r+")
         if (store.attrs.get("names") != collection.names
                 or not np.array_equal(np.asarray(store.attrs["palette"], np.float32), palette)):
-            raise InputError(f"--resume: {output} holds another collection or palette; start "
-                             "afresh with --force")
+            raise InputError(f"{output} holds another collection or palette", "resume",
+                             [("force", "to start afresh")])
         return store
     meta = {"version": __version__, **settings, "dtype": dtype,
             "videos": {s.name: s.fps for s in collection.sources if s.video},

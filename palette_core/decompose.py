@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .colour_set import ColourSet
-from .errors import InputError
+from .errors import InputError, OutputExists
 from .io import DEFAULT_MAX_PIXELS, find_images, load_images
 from .outputs import atomic_outputs, check_apart, check_writable, save_image
 from .palette_file import palette_paths, write_palette_json
@@ -89,8 +89,8 @@ class Decomposition:
         check_apart(paths + ([layers] if layers is not None else []), self.inputs)
         if layers is not None:
             if layers.exists() and (not layers.is_dir() or (any(layers.iterdir()) and not force)):
-                raise InputError(f"layers folder {layers} exists and is not empty "
-                                 "(use --force to write into it)")
+                raise OutputExists(f"layers folder {layers} exists and is not empty",
+                                   "to write into it")
             check_writable([layers / "probe"], True)
         start = time.perf_counter()
         stack = self.stack

@@ -133,15 +133,15 @@ def open_image(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS):
             im = Image.open(file)
     except Image.DecompressionBombError:
         file.close()
-        raise InputError(f"image {path} declares more pixels than --max-pixels "
-                         f"{max_pixels} allows") from None
+        raise InputError(f"image {path} declares more than {max_pixels} pixels",
+                         fixes=[("max_pixels", "to allow more")]) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         file.close()
         raise InputError(f"cannot read image {path}: {exc}") from None
     with file, im:
         if im.width * im.height > max_pixels:
-            raise InputError(f"image {path} is {im.width}x{im.height}, more than --max-pixels "
-                             f"{max_pixels} allows")
+            raise InputError(f"image {path} is {im.width}x{im.height}, more than {max_pixels} "
+                             "pixels", fixes=[("max_pixels", "to allow more")])
         yield im
 
 

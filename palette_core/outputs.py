@@ -129,8 +129,8 @@ def _publish_files(staged: dict[Path, Path], force: bool) -> None:
             try:
                 rename_no_replace(tmp, final)
             except FileExistsError:
-                raise OutputExists(f"output {final} appeared while writing; it was kept "
-                                 "(use --force to overwrite)") from None
+                raise OutputExists(f"output {final} appeared while writing; it was "
+                                   "kept") from None
             published.append(final)
     except BaseException:
         for final in published:
@@ -172,8 +172,8 @@ def publish_folder(final: str | os.PathLike, force: bool = False) -> Iterator[Pa
         try:
             rename_no_replace(staging, final)
         except FileExistsError:
-            raise OutputExists(f"output folder {final} appeared while writing; it was kept "
-                             "(use --force to replace it)") from None
+            raise OutputExists(f"output folder {final} appeared while writing; it was "
+                               "kept", "to replace it") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
@@ -217,7 +217,7 @@ def check_writable(paths: list[Path], force: bool) -> None:
     """
     for path in map(Path, paths):
         if path.exists() and not force:
-            raise OutputExists(f"output {path} already exists (use --force to overwrite)")
+            raise OutputExists(f"output {path} already exists")
         if path.is_dir():
             raise InputError(f"output {path} is a folder, expected a file path")
         check_parent(path)
@@ -253,7 +253,7 @@ def check_outdir(outdir: str | os.PathLike, force: bool) -> None:
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"output {outdir} exists and is not a folder")
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
-        raise OutputExists(f"output folder {outdir} is not empty (use --force to replace it)")
+        raise OutputExists(f"output folder {outdir} is not empty", "to replace it")
     check_parent(outdir)
 
 

@@ -86,8 +86,8 @@ def _probe(path: Path, name: str, max_pixels: int) -> Source:
             stream = container.streams.video[0]
             height, width = stream.codec_context.height, stream.codec_context.width
             if width * height > max_pixels:
-                raise InputError(f"video {path} is {width}x{height}, more than --max-pixels "
-                                 f"{max_pixels} allows")
+                raise InputError(f"video {path} is {width}x{height}, more than {max_pixels} "
+                                 "pixels", fixes=[("max_pixels", "to allow more")])
             if width * height == 0:
                 raise InputError(f"video {path} declares frames of {width}x{height} pixels")
             frames = stream.frames or sum(1 for _ in container.decode(video=0))

@@ -72,5 +72,5 @@ def check_weight_method(method: str, options: dict, stream: bool = False):
     function = check_options(WEIGHT_METHODS, method, "weight method", options)
     if stream and is_spatial(function):
         raise InputError(f"weight method {method} needs whole images (its weights follow image "
-                         "position), so it cannot stream into a Zarr stack: write -o NAME.npz")
+                         "position), so it cannot stream into a Zarr stack: write an NPZ stack")
     return function

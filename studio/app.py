@@ -75,13 +75,12 @@ def check_port(host: str, port: int) -> None:
     """InputError unless ``port`` on ``host`` is a port number that is free (viser would
     quietly take another)."""
     if not 0 <= port <= 65535:
-        raise InputError(f"--port must be in [0, 65535], got {port}")
+        raise InputError(f"must be in [0, 65535], got {port}", "port")
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
         try:
             probe.bind((host, port))
         except OSError as exc:
-            raise InputError(f"cannot listen on {host}:{port}: {exc.strerror} "
-                             "(choose another --port)") from None
+            raise InputError(f"cannot listen on {host}:{port}: {exc.strerror}", "port") from None
 
 
 def open_target(path: str, splats: bool = True):
@@ -262,7 +261,7 @@ class Studio:
         try:
             written = write(force)
         except OutputExists as exc:
-            message = str(exc).split(" (use")[0]  # the CLI's hint does not apply here
+            message = str(exc)
             self.say(f"{message}: replace?")
             self._confirm(client, message, lambda: self._write(client, write, force=True))
             return

@@ -194,8 +194,9 @@ class GridField(Field):
     def baked(self, occupancy, factor: int) -> BakedGrid:
         if self.deferred or self.direction_frequencies is not None:
             raise InputError("only a grid run with per-sample diffuse colours can be baked "
-                             "(train with --no-grid-deferred --grid-view-frequencies none); "
-                             "a deferred head renders from the grids at about the baked speed")
+                             "(trained with the grid's deferred shading off and no view "
+                             "frequencies); a deferred head renders from the grids at about "
+                             "the baked speed")
         if not 1 <= factor <= MAX_BAKE_FACTOR:
             raise InputError(f"the bake factor must be in [1, {MAX_BAKE_FACTOR}], got {factor}")
         return BakedGrid(self, occupancy, factor)

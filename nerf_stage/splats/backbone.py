@@ -145,7 +145,7 @@ class SplatRun(RunBase):
         return self.model.means.device
 
     def baked(self, factor: int = 0):
-        raise InputError("--baked reads a field finer: a splat run has no field to bake")
+        raise InputError("a splat run has no field to bake", "baked")
 
     def bounds(self) -> np.ndarray:
         """(2, 3) world corners of the splats in the scene box (their 1st and 99th
@@ -295,7 +295,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         weights = weights * dataset.alpha[train_ids, ..., None]
     state = read_checkpoint(rundir / CHECKPOINT) if resume else None
     if resume and TrainConfig.from_dict(state["config"]) != config:
-        raise InputError(f"{rundir} was trained with another config; start afresh with --force")
+        raise InputError(f"{rundir} was trained with another config",
+                         fixes=[("force", "to start afresh")])
     if resume:
         run = _from_state(state, str(rundir / CHECKPOINT), device)
     else:
@@ -352,7 +353,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         if not torch.isfinite(loss):
             raise InputError(f"training diverged at iteration {it + 1} (the loss is not "
                              "finite): lower the learning rates or start afresh with another "
-                             "--seed")
+                             "seed")
         loss.backward()
         if run.kind == RGB:
             strategy.after_backward(run.model, optimiser, info, it + 1, view.window[2],

@@ -18,7 +18,7 @@ import typing
 from collections.abc import Callable
 from typing import NoReturn
 
-from ..errors import InputError
+from ..errors import InputError, cli_line
 from ..registry import method_options
 
 
@@ -51,7 +51,7 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
     try:
         return body()
     except InputError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {cli_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:
         where = f" ({exc.filename})" if exc.filename else ""

@@ -58,16 +58,16 @@ def check_store_output(path: str | os.PathLike, force: bool) -> None:
     path = str(path)
     if "://" in path:
         if is_stack_store(path) and not force:
-            raise OutputExists(f"output {path} already exists (use --force to replace it)")
+            raise OutputExists(f"output {path} already exists", "to replace it")
         return
     if not os.path.lexists(path) or (os.path.isdir(path) and not os.listdir(path)):
         check_parent(Path(path))
         return
     if not is_stack_store(path):
-        raise InputError(f"output {path} exists and is not a weight stack store: refusing to "
-                         "replace it, even with --force (choose another -o)")
+        raise InputError(f"output {path} exists and is not a weight stack store: it is "
+                         "never replaced; choose another output")
     if not force:
-        raise OutputExists(f"output {path} already exists (use --force to replace it)")
+        raise OutputExists(f"output {path} already exists", "to replace it")
 
 
 def partial_store(output: str) -> str:
@@ -95,8 +95,9 @@ def publish_store(partial: str, output: str, force: bool) -> None:
     try:
         rename_no_replace(Path(partial), Path(output))
     except FileExistsError:
-        raise OutputExists(f"output {output} appeared while writing; it was kept, and the new "
-                           f"store waits in {partial} (--resume publishes it)") from None
+        raise InputError(f"output {output} appeared while writing; it was kept, and the new "
+                         f"store waits in {partial}", fixes=[("resume", "to publish it")]
+                         ) from None
 
 
 def remove_store(path: str) -> None:
@@ -200,7 +201,7 @@ def read_zarr_stack(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> WeightSt
     import zarr
 
     if not _exists(path) and is_stack_store(partial_store(path)):
-        raise InputError(f"{path} is incomplete: finish it with palette-decompose ... --resume")
+        raise InputError(f"{path} is incomplete: palette-decompose's resume finishes it")
     try:
         store = zarr.open_group(path, mode="r")
         attrs = dict(store.attrs)
@@ -235,7 +236,7 @@ def read_zarr_stack(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> WeightSt
     except Exception:  # noqa: BLE001 - missing, or not a bool array
         done = False
     if not done:
-        raise InputError(f"{path} is incomplete: finish it with palette-decompose ... --resume")
+        raise InputError(f"{path} is incomplete: palette-decompose's resume finishes it")
     frames = []
     for source, name in arrays.items():
         try:
