@@ -6,9 +6,8 @@ from pathlib import Path
 from typing import NoReturn
 
 from palette_core.cli import ArgumentParser, exit_without_teardown, run_cli
-from palette_core.errors import InputError
 from palette_core.palette_file import palette_to_hex
-from palette_core.stack import DEFAULT_STACK, read_stack
+from palette_core.stack import DEFAULT_STACK, default_stack, read_stack
 
 from .batch import ALL, BEST, StackHarmonization, harmonize_stack
 from .templates import TEMPLATES
@@ -52,11 +51,8 @@ def run() -> NoReturn:
 
 def _run(args) -> int:
     if args.stack is None:
-        if not Path(DEFAULT_STACK).is_file():
-            raise InputError(f"no stack given and ./{DEFAULT_STACK} does not exist: make one with "
-                             f"palette-decompose IMAGES... (it writes ./{DEFAULT_STACK})")
-        args.stack = DEFAULT_STACK
-        print(f"using ./{DEFAULT_STACK}")
+        args.stack = str(default_stack())
+        print(f"using ./{args.stack}")
     result = harmonize_stack(read_stack(args.stack), args.template, args.strength)
     written = result.write(args.stack, args.output, args.render, args.force)
     if args.template in (BEST, ALL):

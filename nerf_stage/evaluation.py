@@ -6,16 +6,18 @@ render, and the scene is path traced again with that palette as the ground truth
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
 
 from palette_core.basis import Basis
+from palette_core.palette_file import read_palette_json
 
 from .editing import WeightRender, render_poses
 from .fields import RGB
 from .metrics import image_scores
-from .run import Run
+from .run import Run, RunBase, load_run
 from .simulation import SimulationRecord
 
 
@@ -42,6 +44,18 @@ def composited(radiance: np.ndarray, alpha: np.ndarray, background: np.ndarray) 
 def rolled_palette(palette: np.ndarray) -> np.ndarray:
     """The default edit of ``eval``: every palette colour takes the next one's."""
     return np.roll(palette, -1, axis=0)
+
+
+def evaluate_run(rundir: str | os.PathLike, palette: str | os.PathLike | None = None,
+                 baked: int | None = None) -> tuple[RunBase, dict]:
+    """``nerf-stage eval``: the run in ``rundir`` (baked ``baked`` times finer, when given:
+    ``Run.baked``) scored on its dataset (``evaluate``), the edit being the palette file
+    ``palette`` when given. Returns the run and its scores."""
+    run = load_run(rundir)
+    if baked is not None:
+        run = run.baked(baked)
+    edit = None if palette is None else read_palette_json(palette, k=len(run.palette))
+    return run, evaluate(run, run.dataset(), edit)
 
 
 def evaluate(run: Run, dataset, edit: np.ndarray | None = None,

@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import resource
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,12 +30,12 @@ from tqdm import tqdm
 
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
-from palette_core.stack import WeightStack
+from palette_core.stack import WeightStack, default_stack, read_stack
 
 from .appearance import Appearance
 from .backbones import BACKBONES
 from .config import Space, Strategy, TrainConfig
-from .data import Dataset, join_weights
+from .data import Dataset, join_weights, load_dataset
 from .fields import RGB, make_field
 from .losses import distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse
@@ -45,6 +45,7 @@ from .run import (
     CHECKPOINT,
     CONFIG,
     Run,
+    RunBase,
     RunRecord,
     check_rundir,
     default_device,
@@ -62,6 +63,33 @@ PROBE_PIXELS = 16384
 PROBE_MARGIN = 6.0
 #: ``_fit_output`` starts a channel at its mean weight, or at this where it is smaller.
 MIN_START_WEIGHT = 1e-4
+
+
+@dataclass(frozen=True)
+class TrainedCapture:
+    """What ``train_capture`` trained: the run, its folder, the dataset and the stack."""
+
+    run: RunBase
+    rundir: Path
+    dataset: Dataset
+    weights: Path
+
+
+def train_capture(data: str | os.PathLike, config: TrainConfig,
+                  weights: str | os.PathLike | None = None,
+                  output: str | os.PathLike | None = None, frames_outside: bool = False,
+                  downscale: int = 1, resume: bool = False, force: bool = False
+                  ) -> TrainedCapture:
+    """``nerf-stage train``: the dataset folder ``data`` (``load_dataset``) with its weight
+    stack (``weights``, default ``data``'s ``DEFAULT_STACK``) trained with ``config`` into
+    the run folder ``output`` (default ``DATA-BACKBONE`` beside ``data``; ``train``)."""
+    data = Path(data).resolve()
+    rundir = Path(output or data.with_name(f"{data.name}-{config.backbone}"))
+    dataset = load_dataset(data, config.background, frames_outside, downscale)
+    weights = (Path(weights) if weights else default_stack(data)).resolve()
+    run = train(config, dataset, read_stack(weights), rundir, resume=resume, force=force,
+                weights_path=str(weights))
+    return TrainedCapture(run, rundir, dataset, weights)
 
 
 def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,

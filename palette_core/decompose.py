@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +16,7 @@ from .outputs import atomic_outputs, check_apart, check_writable, save_image
 from .palette_file import palette_paths, write_palette_json
 from .palettes import PALETTE_METHODS, check_palette_size, palette_polytope
 from .registry import check_options
-from .stack import WeightStack, check_dtype, stored_weights, write_stack
+from .stack import DEFAULT_STACK, WeightStack, check_dtype, stored_weights, write_stack
 from .swatch import layer_paths, palette_swatch
 from .version import __version__
 from .weights import check_weight_method, image_weights
@@ -209,3 +210,38 @@ def decompose(
     stack = WeightStack(palette, weights, [im.name for im in images], method,
                         hull_faces=poly.faces.astype(np.int32), meta=meta)
     return Decomposition(stack, rmse, overall, timings, k, [Path(p) for p in inputs])
+
+
+def decompose_to(inputs: list, output: str | os.PathLike = DEFAULT_STACK,
+                 layers: str | os.PathLike | None = None, force: bool = False,
+                 workers: int | None = None, scheduler: str | None = None,
+                 resume: bool = False, **settings) -> tuple:
+    """``palette-decompose``: ``inputs`` into the weight stack ``output``, in memory to an
+    NPZ (``decompose``, then ``Decomposition.write`` with weight maps in ``layers``) or
+    streamed into a Zarr store, which videos need (``collection.decompose_collection``, on
+    a dask cluster of ``workers`` local processes or at ``scheduler``, ``resume`` finishing
+    a stopped one). ``settings`` are ``decompose``'s (``k``, ``max_error``, ``method``, ...).
+    Returns the ``Decomposition`` or ``Collection`` and the paths written."""
+    from .cluster import check_workers, dask_client
+    from .sources import is_video
+    from .stack import is_zarr
+
+    check_workers(workers, scheduler)
+    if not (is_zarr(output) or any(is_video(path) for path in inputs)):
+        if workers is not None or scheduler is not None or resume:
+            raise InputError("a cluster and resuming need a Zarr stack: name the output "
+                             "NAME.zarr", "output")
+        result = decompose(inputs, **settings)
+        return result, result.write(output, layers, force)
+    from .collection import decompose_collection
+
+    if not is_zarr(output):
+        raise InputError(f"videos are decomposed into a Zarr stack: name the output "
+                         f"NAME.zarr, not {output}", "output")
+    if layers:
+        raise InputError("a Zarr stack is written without weight maps: write an NPZ stack "
+                         "for them", "layers")
+    with dask_client(workers, scheduler) as client:
+        done = decompose_collection(inputs, str(output), client=client, resume=resume,
+                                    force=force, **settings)
+    return done, [output, *palette_paths(output)]

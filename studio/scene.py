@@ -25,7 +25,7 @@ from nerf_stage.editing import WeightRender, render_weights, write_gif
 from nerf_stage.fields import RGB
 from nerf_stage.regions import Region
 from nerf_stage.run import RunBase, load_run
-from nerf_stage.splats import Splats, cached_bake, write_ply
+from nerf_stage.splats import Splats, cached_bake, export_ply
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
 
@@ -156,7 +156,7 @@ class SceneTarget:
                intrinsics: Intrinsics, views: int = 36, force: bool = False,
                regions: list[Region] = ()) -> list[Path]:
         """A turntable GIF of ``views`` frames from ``pose``, or the splats as a 3D Gaussian
-        splatting PLY (``nerf_stage.splats.write_ply``), as the suffix of ``path`` says,
+        splatting PLY (``nerf_stage.splats.export_ply``), as the suffix of ``path`` says,
         recoloured with ``palette`` (inside ``regions`` only, when given)."""
         path = Path(path)
         suffix = path.suffix.lower()
@@ -167,11 +167,9 @@ class SceneTarget:
                              "them): export a turntable (.gif)")
         if not 1 <= views <= MAX_TURNTABLE:
             raise InputError(f"a turntable has 1 to {MAX_TURNTABLE} views, got {views}")
-        check_writable([path], force)
         if suffix == ".ply":
-            with atomic_outputs(force) as stage:
-                write_ply(self.splats, stage(path), palette, regions)
-            return [path]
+            return [export_ply(self.splats, path, palette, regions, force)]
+        check_writable([path], force)
         poses = turntable_poses(pose, self.centre, views)
         frames = np.concatenate([recoloured(self.render(p, intrinsics), palette, regions)
                                  for p in poses])

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from palette_core.basis import Basis, n_terms, transport_basis
 from palette_core.errors import InputError
-from palette_core.outputs import publish_folder, save_image
+from palette_core.outputs import check_outdir, publish_folder, save_image
 from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, write_stack
 from palette_core.version import __version__
@@ -35,7 +35,7 @@ from ..cameras import (
 )
 from .geometry import next_term_table, scene_arrays
 from .pathtracer import trace_view
-from .scene import LIMITS, MAX_TERM_BYTES, SPLITS, Scene
+from .scene import BUILTIN_SCENES, LIMITS, MAX_TERM_BYTES, SPLITS, Scene, load_scene
 
 GREY_TOL = 1e-12
 
@@ -334,6 +334,22 @@ def write_dataset(sim: Simulation, scene: Scene, outdir: str | os.PathLike, spec
         if layout == "nerfstudio":
             return _write_nerfstudio(sim, scene, staging)
         return _write_files(sim, scene, staging, spec)
+
+
+def simulate_to(spec: str, outdir: str | os.PathLike, layout: str = "blender",
+                force: bool = False, **overrides) -> tuple[Scene, Simulation, list[str]]:
+    """``nerf-stage simulate``: the scene ``spec`` (a built-in's name or a scene file,
+    ``load_scene``) with ``overrides`` (``with_overrides``) path traced (``simulate``) and
+    written into ``outdir`` (``write_dataset``). Returns the scene, its simulation and the
+    files written."""
+    scene = with_overrides(load_scene(spec), **overrides)
+    if scene.camera.off_ring and layout != "blender":
+        raise InputError("off-ring test views are written in the blender layout only (its "
+                         "transforms_test.json marks them)")
+    check_outdir(outdir, force)
+    sim = simulate(scene)
+    source = spec if spec in BUILTIN_SCENES else str(Path(spec).resolve())
+    return scene, sim, write_dataset(sim, scene, outdir, source, force=force, layout=layout)
 
 
 def _write_images(sim: Simulation, root: Path, names: list[str]) -> None:

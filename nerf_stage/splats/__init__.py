@@ -9,10 +9,12 @@ from .baking import (
     SPLAT_CACHE,
     bake,
     bake_run,
+    bake_to,
     cached_bake,
     refine,
+    splats_of,
 )
-from .export import write_ply
+from .export import export_ply, write_ply
 from .model import SPLAT_FORMAT, Splats, covariances, matrix_quaternions, read_splats, write_splats
 from .rasterise import draw, render_splats, splat_tensors
 from .sh import SH_C0
@@ -27,14 +29,17 @@ __all__ = [
     "Splats",
     "bake",
     "bake_run",
+    "bake_to",
     "cached_bake",
     "covariances",
     "draw",
+    "export_ply",
     "matrix_quaternions",
     "read_splats",
     "refine",
     "render_splats",
     "splat_tensors",
+    "splats_of",
     "write_ply",
     "write_splats",
 ]

@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from palette_core.basis import Basis
 from palette_core.errors import InputError
-from palette_core.outputs import atomic_outputs
+from palette_core.outputs import atomic_outputs, check_writable
 
 from ..cameras import Intrinsics
 from ..fields import RGB
@@ -129,6 +129,25 @@ def cached_bake(run, rundir: str | os.PathLike, progress: bool = True, **options
     with atomic_outputs(force=True) as stage:  # our own cache, of this run
         write_splats(splats, stage(path))
     return splats
+
+
+def bake_to(rundir: str | os.PathLike, output: str | os.PathLike | None = None,
+            max_splats: int = MAX_SPLATS, refine_steps: int | None = None,
+            force: bool = False) -> tuple[Splats, Path]:
+    """``bake_run`` written to ``output`` (default ``rundir``'s ``SPLAT_CACHE``, where the
+    studio and ``splats_of`` find it), atomically; an existing file is replaced only with
+    ``force``. Returns the splats and where they went."""
+    output = Path(output or Path(rundir) / SPLAT_CACHE)
+    check_writable([output], force)
+    splats = bake_run(rundir, max_splats, refine_steps)
+    with atomic_outputs(force) as stage:
+        write_splats(splats, stage(output))
+    return splats, output
+
+
+def splats_of(path: str | os.PathLike) -> Splats:
+    """The splats of a bake file, or of a run folder (its kept bake, ``cached_bake``)."""
+    return cached_bake(load_run(path), path) if Path(path).is_dir() else read_splats(path)
 
 
 def _from_samples(run, views: np.ndarray, camera: Intrinsics, weights: np.ndarray,

@@ -4,12 +4,29 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
+
+from palette_core.errors import InputError
+from palette_core.outputs import atomic_outputs, check_writable
 
 from ..regions import Region
 from .model import Splats
 from .sh import SH_C0
+
+
+def export_ply(splats: Splats, path: str | os.PathLike, palette: np.ndarray | None = None,
+               regions: Sequence[Region] = (), force: bool = False) -> Path:
+    """``write_ply`` to ``path`` (a ``.ply``, written atomically; an existing file is
+    replaced only with ``force``): what ``nerf-stage export`` and the studio write."""
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise InputError(f"a splat export is written as .ply, got {path}")
+    check_writable([path], force)
+    with atomic_outputs(force) as stage:
+        write_ply(splats, stage(path), palette, regions)
+    return path
 
 
 def write_ply(splats: Splats, path: str | os.PathLike, palette: np.ndarray | None = None,

@@ -1,19 +1,17 @@
-"""``palette-decompose``: images -> shared palette + weight stack (NPZ)."""
+"""``palette-decompose``: images and videos -> shared palette + weight stack (NPZ or Zarr;
+``decompose.decompose_to``)."""
 
 from __future__ import annotations
 
 import sys
 from typing import NoReturn
 
-from ..cluster import check_workers, dask_client
-from ..collection import decompose_collection
-from ..decompose import decompose
-from ..errors import InputError
+from ..collection import Collection
+from ..decompose import Decomposition, decompose_to
 from ..io import DEFAULT_MAX_PIXELS
-from ..palette_file import palette_paths, palette_to_hex
+from ..palette_file import palette_to_hex
 from ..palettes import PALETTE_METHODS
-from ..sources import is_video
-from ..stack import DEFAULT_STACK, is_zarr
+from ..stack import DEFAULT_STACK
 from ..weights import WEIGHT_METHODS
 from . import ArgumentParser, add_method_options, exit_without_teardown, given_options, run_cli
 
@@ -74,15 +72,21 @@ def run() -> NoReturn:
 
 
 def _run(args) -> int:
-    check_workers(args.workers, args.scheduler)
-    if is_zarr(args.output) or any(is_video(path) for path in args.inputs):
-        return _run_collection(args)
-    if args.workers is not None or args.scheduler is not None or args.resume:
-        raise InputError("--workers, --scheduler and --resume need -o NAME.zarr")
-    result = decompose(args.inputs, args.k, args.max_error, args.method, args.dtype,
-                       given_options(args, WEIGHT_METHODS), args.palette_method, args.max_pixels,
-                       given_options(args, PALETTE_METHODS))
-    written = result.write(args.output, args.layers, args.force)
+    result, written = decompose_to(
+        args.inputs, args.output, args.layers, args.force, args.workers, args.scheduler,
+        args.resume, k=args.k, max_error=args.max_error, method=args.method, dtype=args.dtype,
+        method_options=given_options(args, WEIGHT_METHODS), palette_method=args.palette_method,
+        max_pixels=args.max_pixels, palette_options=given_options(args, PALETTE_METHODS))
+    if isinstance(result, Collection):
+        _print_collection(result)
+    else:
+        _print_decomposition(result)
+    print("time: " + ", ".join(f"{stage} {t:.2f} s" for stage, t in result.timings.items()))
+    print("wrote " + ", ".join(map(str, written)))
+    return 0
+
+
+def _print_decomposition(result: Decomposition) -> None:
     stack = result.stack
     if result.hull_too_small:
         print(f"{PROG}: note: the palette has {len(stack.palette)} colours, fewer than -k "
@@ -93,31 +97,13 @@ def _run(args) -> int:
     for name, w in zip(stack.names, stack.weights):
         print(f"  {name:<{width}}  {w.shape[1]}x{w.shape[0]}  RMSE {result.rmse[name]:.3f}")
     print(f"RMSE (0-255, per channel) over {len(stack.names)} images: {result.rmse_overall:.3f}")
-    print("time: " + ", ".join(f"{stage} {t:.2f} s" for stage, t in result.timings.items()))
-    print("wrote " + ", ".join(map(str, written)))
-    return 0
 
 
-def _run_collection(args) -> int:
-    if not is_zarr(args.output):
-        raise InputError(f"videos are decomposed into a Zarr stack: give -o NAME.zarr, not "
-                         f"{args.output}")
-    if args.layers:
-        raise InputError("--layers needs -o NAME.npz: a Zarr stack is written without them")
-    with dask_client(args.workers, args.scheduler) as client:
-        done = decompose_collection(args.inputs, args.output, args.k, args.max_error,
-                                    args.palette_method, args.dtype, args.max_pixels, client,
-                                    args.resume, args.force, method=args.method,
-                                    method_options=given_options(args, WEIGHT_METHODS),
-                                    palette_options=given_options(args, PALETTE_METHODS))
+def _print_collection(done: Collection) -> None:
     palette = done.palette.vertices
-    megapixels = done.counts.sum() / 1e6
     print(f"palette ({len(palette)} colours): {' '.join(palette_to_hex(palette))}")
-    print(f"{len(done.names)} images and frames, {megapixels:.1f} Mpx, "
+    print(f"{len(done.names)} images and frames, {done.counts.sum() / 1e6:.1f} Mpx, "
           f"{len(done.codes)} distinct colours")
-    print("time: " + ", ".join(f"{stage} {t:.2f} s" for stage, t in done.timings.items()))
-    print("wrote " + ", ".join(map(str, [args.output, *palette_paths(args.output)])))
-    return 0
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from .base import (
     check_dtype,
     check_meta,
     check_names,
+    default_stack,
     frame_name,
     is_zarr,
     stored_weights,
@@ -56,6 +57,7 @@ def write_stack(stack: WeightStack, file, dtype: str | None = None, force: bool 
 
 __all__ = [
     "DEFAULT_STACK",
+    "default_stack",
     "FLOAT16_SUM_TOL",
     "FORMAT",
     "MAX_FPS",

@@ -60,6 +60,21 @@ class WeightStack:
     meta: dict = field(default_factory=dict)
 
 
+def default_stack(folder: str | os.PathLike = ".") -> Path:
+    """``folder``'s ``DEFAULT_STACK``, where ``palette-decompose`` run there writes it.
+
+    Raises
+    ------
+    InputError
+        When it is not there (naming the command that makes it).
+    """
+    path = Path(folder) / DEFAULT_STACK
+    if not path.is_file():
+        raise InputError(f"no weight stack given and {path} does not exist: palette-decompose "
+                         "of the images writes it there")
+    return path
+
+
 def frame_name(video: str, index: int) -> str:
     """The name of frame ``index`` of ``video`` in a stack: ``clip.mp4#000123``."""
     return f"{video}#{index:06d}"
