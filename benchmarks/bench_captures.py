@@ -56,12 +56,12 @@ import numpy as np
 from bench_scenes import error_map, rendered
 from PIL import Image
 
-from nerf_stage.backbones import BACKBONES
-from nerf_stage.config import TrainConfig
-from nerf_stage.data import load_dataset
-from nerf_stage.metrics import image_scores
-from nerf_stage.points import POINTS_FILE, write_points
-from nerf_stage.run import load_run
+from nerf_stage.data.dataset import load_dataset
+from nerf_stage.data.points import POINTS_FILE, write_points
+from nerf_stage.train.backbones import BACKBONES
+from nerf_stage.train.config import TrainConfig
+from nerf_stage.train.metrics import image_scores
+from nerf_stage.train.run import load_run
 
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
@@ -107,7 +107,7 @@ def undistorted_beforehand(capture: Path, out: Path) -> Path:
     that our undistortion on reading is measured against."""
     from scipy.spatial.transform import Rotation
 
-    from nerf_stage.colmap import import_pycolmap
+    from nerf_stage.data.colmap import import_pycolmap
 
     if not (out / "sparse").is_dir():
         meta = json.loads((capture / "transforms.json").read_text())

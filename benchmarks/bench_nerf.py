@@ -43,11 +43,11 @@ import torch
 from bench_simulate import EDITED
 
 from nerf_stage.cli import main as nerf_stage
-from nerf_stage.config import BAKE_FACTOR, TrainConfig
-from nerf_stage.data import load_dataset
-from nerf_stage.evaluation import evaluate
-from nerf_stage.run import CHECKPOINT, CONFIG, load_run
-from nerf_stage.trainer import train
+from nerf_stage.data.dataset import load_dataset
+from nerf_stage.train.config import BAKE_FACTOR, TrainConfig
+from nerf_stage.train.evaluation import evaluate
+from nerf_stage.train.run import CHECKPOINT, CONFIG, load_run
+from nerf_stage.train.trainer import train
 from palette_core.basis import Basis
 from palette_core.cli.decompose import main as decompose
 from palette_core.stack import read_stack
@@ -109,7 +109,7 @@ def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: P
     any), times and log."""
     rundir = runs / name
     done = (rundir / CHECKPOINT).is_file() and (rundir / CONFIG).is_file() and \
-        TrainConfig.load(rundir / CONFIG) == config
+        TrainConfig.load(rundir / CONFIG).trains_like(config)
     dataset = load_dataset(root, config.background)
     if done and load_run(rundir, "cpu").record.iteration == config.total_iters:
         run = load_run(rundir)

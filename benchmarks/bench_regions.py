@@ -29,12 +29,12 @@ import numpy as np
 from bench_nerf import scene_run, table
 from PIL import Image
 
-from nerf_stage.config import TrainConfig
-from nerf_stage.editing import render_poses, render_weights
-from nerf_stage.evaluation import resimulated_views
-from nerf_stage.metrics import image_scores
-from nerf_stage.regions import parse_region
+from nerf_stage.edit.editing import render_poses, render_weights
+from nerf_stage.edit.regions import parse_region
 from nerf_stage.simulation import SimulationRecord
+from nerf_stage.train.config import TrainConfig
+from nerf_stage.train.evaluation import resimulated_views
+from nerf_stage.train.metrics import image_scores
 
 SCENE, OBJECT = "clay-twins", "clay ball"
 REGION = "box:0.2,-0.1,-0.6,1.6,1.2,0.8"  # around the ball, far from the vase

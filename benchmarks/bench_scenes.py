@@ -30,13 +30,13 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from nerf_stage.config import TrainConfig
-from nerf_stage.data import load_dataset
-from nerf_stage.editing import WeightRender
+from nerf_stage.data.dataset import load_dataset
+from nerf_stage.edit.editing import WeightRender
 from nerf_stage.fields import RGB
-from nerf_stage.metrics import image_scores
-from nerf_stage.run import load_run
-from nerf_stage.trainer import train
+from nerf_stage.train.config import TrainConfig
+from nerf_stage.train.metrics import image_scores
+from nerf_stage.train.run import load_run
+from nerf_stage.train.trainer import train
 from palette_core import decompose, read_stack
 
 SCENES = Path(__file__).parent / "scenes"

@@ -32,13 +32,13 @@ import numpy as np
 from bench_nerf import scene_run, table
 from bench_simulated import figure
 
-from nerf_stage.cameras import off_ring_poses
-from nerf_stage.config import TrainConfig
-from nerf_stage.editing import WeightRender, render_poses
-from nerf_stage.evaluation import composited
-from nerf_stage.metrics import psnr
+from nerf_stage.data.cameras import off_ring_poses
+from nerf_stage.edit.editing import WeightRender, render_poses
 from nerf_stage.simulation import BUILTIN_SCENES, load_scene, render_terms
 from nerf_stage.splats import MAX_SPLATS, bake_run, render_splats, write_splats
+from nerf_stage.train.config import TrainConfig
+from nerf_stage.train.evaluation import composited
+from nerf_stage.train.metrics import psnr
 
 
 def truth(scene: str, poses: np.ndarray, resolution: tuple[int, int],

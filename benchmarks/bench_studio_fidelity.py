@@ -32,7 +32,7 @@ from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from nerf_stage.metrics import psnr  # noqa: E402
+from nerf_stage.train.metrics import psnr  # noqa: E402
 from studio.app import Studio  # noqa: E402
 from studio.pictures import camera_pose  # noqa: E402
 from studio.scene import SceneTarget, recoloured  # noqa: E402

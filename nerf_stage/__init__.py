@@ -1,13 +1,14 @@
 """NeRF stage: simulated multi-view scenes with light-transport weights, multi-view
 datasets and weight stacks joined to them, and weight NeRFs (PaletteNeRF).
 
-The weight NeRF modules need torch (the ``nerf`` extra) and are imported by name:
-``fields`` (backbones), ``scene_box``, ``occupancy``, ``rendering`` (marching and
-compositing), ``losses``, ``run`` (the run folder: config, checkpoint, load_run),
-``trainer`` (train), ``editing`` (weight renders and recolouring) and ``evaluation``
-(re-simulated edits); ``config``, ``backbones``, ``cameras`` and ``metrics`` (PSNR,
-SSIM) need no torch. Imports ``palette_core`` and
-``harmonize``; never the reverse. docs/architecture.md shows how they fit together.
+Its rooms: ``data`` (datasets, cameras, lenses, captures), ``fields`` (the neural
+backbones), ``render`` (the scene box, occupancy, marching), ``train`` (settings, run
+folders, the loop, scores), ``edit`` (weight renders recoloured, regions), ``splats``
+(3D Gaussians: a backbone, bakes, the rasteriser, the PLY), ``simulation`` (the path
+tracer) and ``cli``. The weight NeRF modules need torch (the ``nerf`` extra);
+``train.config``, ``train.backbones``, ``data.cameras`` and ``train.metrics`` need none.
+Imports ``palette_core`` and ``harmonize``; never the reverse. docs/architecture.md
+shows how they fit together.
 """
 
 import importlib
@@ -15,8 +16,8 @@ import importlib
 #: Public names, by the module that holds them; imported on first use, so that importing
 #: one module (a metric, the config) does not compile the path tracer.
 _LAZY = {
-    "Intrinsics": "cameras",
-    "Dataset": "data", "join_weights": "data", "load_dataset": "data",
+    "Intrinsics": "data.cameras",
+    "Dataset": "data.dataset", "join_weights": "data.dataset", "load_dataset": "data.dataset",
     "Scene": "simulation", "Simulation": "simulation", "load_scene": "simulation",
     "simulate": "simulation", "write_dataset": "simulation",
 }

@@ -16,8 +16,9 @@ passes ``Guard.admit`` first, before viser sees it (websockets' ``process_reques
 
 Refusals are answered 403 before anything is read and logged to stderr. viser has no
 hook for this, so ``guarded_server`` passes the check to the ``serve`` call that viser
-makes while it starts (the smallest wrapper around its server; tests/test_studio.py
-covers it); nothing else of viser changes.
+makes while it starts (the smallest wrapper around its server; tests/test_guard.py
+covers it, and fails if the private module it wraps moves: setup.cfg pins the viser
+releases it was written against); nothing else of viser changes.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ The run is baked into splats on first open and the bake kept in the run folder
 (``nerf_stage.splats.cached_bake``); the browser draws them, and a palette change sends
 their new colours. The network runs once per camera view and resolution; the weights are
 cached with the samples behind each pixel, and a palette change, or a region moved
-(``nerf_stage.regions``), recolours them (``nerf_stage.editing.WeightRender``) without
+(``nerf_stage.edit.regions``), recolours them (``nerf_stage.edit.editing.WeightRender``) without
 running it again.
 """
 
@@ -20,12 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from harmonize import palette_shares
-from nerf_stage.cameras import Intrinsics, look_at, turntable_poses
-from nerf_stage.editing import WeightRender, render_weights, write_gif
+from nerf_stage.data.cameras import Intrinsics, look_at, turntable_poses
+from nerf_stage.edit.editing import WeightRender, render_weights, write_gif
+from nerf_stage.edit.regions import Region
 from nerf_stage.fields import RGB
-from nerf_stage.regions import Region
-from nerf_stage.run import RunBase, load_run
 from nerf_stage.splats import Splats, cached_bake, export_ply
+from nerf_stage.train.run import RunBase, load_run
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
 

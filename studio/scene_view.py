@@ -7,7 +7,7 @@ camera, coarse while it moves and at the training resolution once it stops, and 
 the cached weights on palette edits without the network; with splats, *full-quality still*
 renders the network's view once. A box region, placed with a gizmo and sized in the panel,
 keeps the edit inside it; moving it recolours without the network too
-(``nerf_stage.regions``)."""
+(``nerf_stage.edit.regions``)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerf_stage.regions import Region
+from nerf_stage.edit.regions import Region
 
 from .pictures import bounded_aspect, camera_pose, to_bytes
 from .scene import MAX_TURNTABLE, SceneTarget, recoloured

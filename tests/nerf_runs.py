@@ -4,9 +4,9 @@ from dataclasses import replace
 
 import torch
 
-from nerf_stage.config import GridConfig, HashConfig, MLPConfig, TrainConfig
-from nerf_stage.data import load_dataset
-from nerf_stage.trainer import train
+from nerf_stage.data.dataset import load_dataset
+from nerf_stage.train.config import GridConfig, HashConfig, MLPConfig, TrainConfig
+from nerf_stage.train.trainer import train
 from palette_core.stack import read_stack
 
 TINY = {"occupancy_voxels": 6**3, "batch_rays": 64, "head_width": 16, "checkpoint_every": 2,

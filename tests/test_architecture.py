@@ -77,9 +77,9 @@ def test_cycle_finder_finds_a_cycle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
-@pytest.mark.parametrize("module, heavy", [("nerf_stage.metrics", ("numba", "torch")),
-                                           ("nerf_stage.backbones", ("torch",)),
-                                           ("nerf_stage.data", ("torch", "pycolmap")),
+@pytest.mark.parametrize("module, heavy", [("nerf_stage.train.metrics", ("numba", "torch")),
+                                           ("nerf_stage.train.backbones", ("torch",)),
+                                           ("nerf_stage.data.dataset", ("torch", "pycolmap")),
                                            ("palette_core", ("torch", "zarr", "viser"))])
 def test_light_modules_import_no_heavy_dependency(module, heavy):
     code = f"import sys, {module}; print(*[m for m in {heavy!r} if m in sys.modules])"

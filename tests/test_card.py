@@ -8,9 +8,9 @@ pytest.importorskip("torch")
 
 from harmonize.cli import main as harmonize  # noqa: E402
 from nerf_stage.cli import main as nerf_stage  # noqa: E402
-from nerf_stage.config import CONFIG_ENV  # noqa: E402
-from nerf_stage.data import join_weights, load_dataset  # noqa: E402
-from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
+from nerf_stage.train.config import CONFIG_ENV  # noqa: E402
+from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core import read_stack  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
 
@@ -56,12 +56,12 @@ def test_the_three_commands_of_the_card(scene, capsys):
 
 def test_the_card_says_what_is_missing(scene, capsys):
     expect_error(harmonize, ["--template", "double-split"],
-                 "./weights.npz does not exist: make one with palette-decompose", capsys)
-    expect_error(nerf_stage, ["train"], "weights.npz does not exist: make it with "
-                 "palette-decompose images/", capsys)
+                 "weights.npz does not exist: palette-decompose of the images writes it", capsys)
+    expect_error(nerf_stage, ["train"], "weights.npz does not exist: palette-decompose of the "
+                 "images writes it", capsys)
     (scene / "transforms.json").unlink()
-    expect_error(nerf_stage, ["train"], "nor a COLMAP model (sparse/0): make one with "
-                 "nerf-stage poses PHOTOS", capsys)
+    expect_error(nerf_stage, ["train"], "a COLMAP model (sparse/0) (colmap layout): make one "
+                 "from photos with nerf-stage poses", capsys)
 
 
 def test_harmonize_says_which_stack_it_took(scene, capsys):

@@ -67,7 +67,7 @@ def test_a_video_in_and_out(tmp_path, rng, capsys):
     assert sorted(p.name for p in (tmp_path / "png").iterdir())[0] == "clip.mp4#000000.png"
     capsys.readouterr()
     expect_error(decompose_cli.main, [str(clip), "-o", str(tmp_path / "w.npz")],
-                 "give -o NAME.zarr", capsys)
+                 "--output: videos are decomposed into a Zarr stack", capsys)
 
 
 def test_a_killed_second_pass_resumes(photo_dir, tmp_path, monkeypatch, capsys):
@@ -371,14 +371,14 @@ def test_a_scheduler_that_is_not_one(photo_dir, tmp_path, capsys, monkeypatch, f
     (["--scheduler", "tls://127.0.0.1:1"], "needs dask's TLS settings"),
     (["--scheduler", "ws://127.0.0.1:1"], "must be tcp://HOST:PORT"),
     (["--scheduler", "tcp://127.0.0.1"], "must be tcp://HOST:PORT"),
-    (["--workers", "100000"], "--workers must be 1 to"),
-    (["--workers", "0"], "--workers must be 1 to"),
+    (["--workers", "100000"], "--workers: must be 1 to"),
+    (["--workers", "0"], "--workers: must be 1 to"),
     (["--workers", "1", "--scheduler", "tcp://127.0.0.1:1"], "not both"),
 ])
 @pytest.mark.parametrize("output", ["w.zarr", "w.npz"])
 def test_dask_options_are_checked(photo_dir, tmp_path, capsys, options, message, output):
     if output == "w.npz" and options[0] == "--scheduler":
-        message = "need -o NAME.zarr"
+        message = "--output: a cluster and resuming need a Zarr stack"
     expect_error(decompose_cli.main, [str(photo_dir), "-o", str(tmp_path / output), *options],
                  message, capsys)
 

@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from nerf_stage.cli import main
-from nerf_stage.data import join_weights, load_dataset
+from nerf_stage.data.dataset import join_weights, load_dataset
 from palette_core import InputError, WeightStack, read_stack
 from palette_core.basis import weights_to_rgb
 
@@ -143,7 +143,7 @@ def test_frames_stay_inside_the_folder(tmp_path, capsys, layout, escape):
         (root / "transforms_test.json").write_text(json.dumps(data))
     with pytest.raises(InputError, match=r"frames\[\d\]: file_path .* lies outside"):
         load_dataset(root)
-    expect_error(main, ["train", str(root)], "--frames-outside reads it", capsys)
+    expect_error(main, ["train", str(root)], "(use --frames-outside to read it)", capsys)
     data = load_dataset(root, frames_outside=True)
     assert data.frames_outside and np.allclose(data.images[-1 if layout == "nerfstudio" else 2],
                                                7 / 255)
@@ -208,7 +208,7 @@ def test_malformed_datasets(tmp_path, edit, message):
 
 
 def test_folder_without_transforms(tmp_path):
-    with pytest.raises(InputError, match="neither transforms_train.json"):
+    with pytest.raises(InputError, match="holds none of transforms_train.json"):
         load_dataset(tmp_path)
 
 
@@ -218,8 +218,9 @@ def test_decompression_bomb_as_dataset_frame(tmp_path):
     frames = [{"file_path": "train/r_0", "transform_matrix": np.eye(4).tolist()}]
     (tmp_path / "transforms_train.json").write_text(
         json.dumps({"camera_angle_x": 0.7, "frames": frames}))
-    with pytest.raises(InputError, match="max-pixels"):
+    with pytest.raises(InputError, match="declares more than") as refused:
         load_dataset(tmp_path)
+    assert refused.value.fixes == (("max_pixels", "to allow more"),)
 
 
 def test_nan_camera_matrix(tmp_path):

@@ -16,9 +16,9 @@ from .hostile import colmap_capture, nerfstudio_capture
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.cameras import Intrinsics  # noqa: E402
-from nerf_stage.data import join_weights, load_dataset  # noqa: E402
-from nerf_stage.distortion import Distortion, sources, undistort, undistorted_camera  # noqa: E402
+from nerf_stage.data.cameras import Intrinsics  # noqa: E402
+from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
+from nerf_stage.data.distortion import Distortion, sources, undistort, undistorted_camera  # noqa: E402
 
 CAMERA = Intrinsics(64, 48, 50.0, 52.0, 31.0, 25.0)
 LENSES = [Distortion("opencv", (-0.25, 0.06, 0.0, 0.0), (0.002, -0.003)),

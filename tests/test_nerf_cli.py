@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from nerf_stage.cli import main as nerf_stage
-from nerf_stage.data import load_dataset
+from nerf_stage.data.dataset import load_dataset
 from palette_core.cli import decompose
 
 from .helpers import expect_error
@@ -16,9 +16,9 @@ from .helpers import expect_error
 torch = pytest.importorskip("torch")
 
 from nerf_stage.cli import main  # noqa: E402
-from nerf_stage.config import BAKE_FACTOR  # noqa: E402
-from nerf_stage.editing import read_render  # noqa: E402
-from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.edit.editing import read_render  # noqa: E402
+from nerf_stage.train.config import BAKE_FACTOR  # noqa: E402
+from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 
 from .nerf_runs import tiny_config, trained  # noqa: E402
 

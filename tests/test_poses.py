@@ -10,10 +10,10 @@ from scipy.ndimage import zoom
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from nerf_stage.cameras import Intrinsics, camera_rays, look_at  # noqa: E402
 from nerf_stage.cli import main as nerf_stage  # noqa: E402
-from nerf_stage.data import load_dataset  # noqa: E402
-from nerf_stage.metrics import pose_errors  # noqa: E402
+from nerf_stage.data.cameras import Intrinsics, camera_rays, look_at  # noqa: E402
+from nerf_stage.data.dataset import load_dataset  # noqa: E402
+from nerf_stage.train.metrics import pose_errors  # noqa: E402
 from palette_core.cli import decompose  # noqa: E402
 
 from .nerf_runs import TINY_FLAGS  # noqa: E402

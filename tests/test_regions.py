@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from nerf_stage.regions import ColourRegion, PixelSamples, Region, parse_region, read_regions
+from nerf_stage.edit.regions import ColourRegion, PixelSamples, Region, parse_region, read_regions
 from nerf_stage.simulation import (
     load_scene,
     parse_scene,
@@ -93,13 +93,13 @@ def test_shares_weigh_the_first_half_of_each_pixels_light():
 torch = pytest.importorskip("torch")
 
 from nerf_stage.cli import main  # noqa: E402
-from nerf_stage.editing import (  # noqa: E402
+from nerf_stage.edit.editing import (  # noqa: E402
     RENDER_FILE,
     read_render,
     render_weights,
     write_render,
 )
-from nerf_stage.run import load_run  # noqa: E402
+from nerf_stage.train.run import load_run  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -7,14 +7,14 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage import occupancy as occupancy_module  # noqa: E402
-from nerf_stage import rendering  # noqa: E402
-from nerf_stage.cameras import orbit_poses, rig_poses  # noqa: E402
-from nerf_stage.data import load_dataset  # noqa: E402
+from nerf_stage.data.cameras import orbit_poses, rig_poses  # noqa: E402
+from nerf_stage.data.dataset import load_dataset  # noqa: E402
 from nerf_stage.fields.base import RaySampling  # noqa: E402
-from nerf_stage.occupancy import OccupancyGrid  # noqa: E402
-from nerf_stage.rendering import composite, render_rays  # noqa: E402
-from nerf_stage.scene_box import scene_box, visual_hull  # noqa: E402
+from nerf_stage.render import march as rendering  # noqa: E402
+from nerf_stage.render import occupancy as occupancy_module  # noqa: E402
+from nerf_stage.render.march import composite, render_rays  # noqa: E402
+from nerf_stage.render.occupancy import OccupancyGrid  # noqa: E402
+from nerf_stage.render.scene_box import scene_box, visual_hull  # noqa: E402
 
 
 def test_m_channel_compositing_equals_rgb_compositing_for_one_hot_weights(rng):
@@ -154,7 +154,7 @@ def test_the_free_distance_follows_the_occupied_cells():
 def test_each_view_renders_with_its_own_camera(scene_run):
     from dataclasses import replace
 
-    from nerf_stage.run import load_run
+    from nerf_stage.train.run import load_run
 
     run = load_run(scene_run)
     poses = orbit_poses(rig_poses("orbit", 4, [0, 0.4, 0], 4.5, (20, 30)), 2, [0, 0.4, 0])

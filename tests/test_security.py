@@ -45,7 +45,7 @@ def stack_files(tmp_path, rng):
 # 1. An NPZ member that lies about its size ---------------------------------------------------
 
 def read_render_command(path) -> int:
-    from nerf_stage.editing import read_render
+    from nerf_stage.edit.editing import read_render
 
     return run_cli("read", lambda: (read_render(path), 0)[1])
 
@@ -116,7 +116,7 @@ def test_a_capture_whose_photos_link_outside_is_refused(tmp_path, rng, capsys):
     pytest.importorskip("torch")
     pytest.importorskip("pycolmap")
     from nerf_stage.cli import main as nerf
-    from nerf_stage.data import load_dataset
+    from nerf_stage.data.dataset import load_dataset
 
     for make in (lambda f: colmap_capture(f, rng, binary=False),
                  lambda f: nerfstudio_capture(f, rng)):
@@ -146,7 +146,7 @@ def test_a_capture_whose_points_lie_is_refused(tmp_path, rng, name, content, mes
     """A ``ply_file_path`` out of the capture, of the wrong type, or naming a file whose
     header claims more points than it holds: one InputError each."""
     pytest.importorskip("torch")
-    from nerf_stage.data import load_dataset
+    from nerf_stage.data.dataset import load_dataset
 
     capture = nerfstudio_capture(tmp_path / "c", rng)
     (tmp_path / "points.ply").write_bytes(b"ply\n")
@@ -177,7 +177,7 @@ def test_a_feather_wider_than_the_images_is_refused(stack_files, tmp_path):
 @pytest.mark.parametrize("count, message", [(65, "at most 64 apply"), (10**6, "more than")])
 def test_region_files_of_too_many_regions_are_refused(tmp_path, count, message):
     pytest.importorskip("torch")
-    from nerf_stage.regions import read_regions
+    from nerf_stage.edit.regions import read_regions
 
     box = {"shape": "box", "centre": [0, 0, 0], "half": [1, 1, 1]}
     (tmp_path / "r.json").write_text(json.dumps({"regions": [box] * count}))
@@ -222,8 +222,8 @@ def test_a_binary_model_that_makes_its_reader_loop_is_refused(tmp_path, rng, cap
     looping in C++: it is read first in a child that a time limit stops."""
     pytest.importorskip("torch")
     pytest.importorskip("pycolmap")
-    from nerf_stage import colmap
     from nerf_stage.cli import main as nerf
+    from nerf_stage.data import colmap
 
     monkeypatch.setattr(colmap, "READ_SECONDS", 2)
     capture = colmap_capture(tmp_path / "c", rng, binary=True)
@@ -241,7 +241,7 @@ def test_a_binary_model_that_makes_its_reader_loop_is_refused(tmp_path, rng, cap
 @pytest.mark.parametrize("field, value", [("fl_x", 0), ("cx", 1e9), ("w", 10**9)])
 def test_nerfstudio_cameras_out_of_bounds_are_refused(tmp_path, rng, field, value):
     pytest.importorskip("torch")
-    from nerf_stage.data import load_dataset
+    from nerf_stage.data.dataset import load_dataset
 
     capture = nerfstudio_capture(tmp_path / "c", rng)
     data = json.loads((capture / "transforms.json").read_text())

@@ -8,10 +8,10 @@ import pytest
 import trimesh
 from PIL import Image
 
-from nerf_stage.cameras import focal_from_fov, look_at, rig_poses
 from nerf_stage.cli import main
 from nerf_stage.cli import main as nerf_stage
-from nerf_stage.data import load_dataset
+from nerf_stage.data.cameras import focal_from_fov, look_at, rig_poses
+from nerf_stage.data.dataset import load_dataset
 from nerf_stage.simulation import (
     BUILTIN_SCENES,
     load_scene,

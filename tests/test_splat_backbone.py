@@ -10,17 +10,17 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.backbones import SplatConfig  # noqa: E402
-from nerf_stage.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
+from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.fields.base import RGB  # noqa: E402
-from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
 from nerf_stage.splats import read_splats  # noqa: E402
 from nerf_stage.splats.backbone import SplatModel  # noqa: E402
 from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
 from nerf_stage.splats.sh import sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import Densification  # noqa: E402
+from nerf_stage.train.backbones import SplatConfig  # noqa: E402
+from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
@@ -291,7 +291,7 @@ def test_traditional_training_is_refused_for_splats(cornell, tmp_path, capsys):
 def test_a_splat_run_recolours_inside_a_region_only(splat_run, tmp_path, capsys):
     """A region's pixels take the edit through the splats inside it (their centres), the
     rest keep the run's palette."""
-    from nerf_stage.editing import RENDER_FILE, read_render
+    from nerf_stage.edit.editing import RENDER_FILE, read_render
 
     palette = tmp_path / "teal.json"
     palette.write_text('{"palette": ' + str([[0.1, 0.6, 0.55]] * 4) + "}")
@@ -378,7 +378,7 @@ def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, t
 
 
 def test_bounded_scenes_start_their_splats_in_the_visual_hull():
-    from nerf_stage.scene_box import SceneBox
+    from nerf_stage.render.scene_box import SceneBox
     from nerf_stage.splats.backbone import initial_splats
 
     box = SceneBox(np.zeros(3), np.array([2.0, 1.0, 1.0]))
@@ -392,8 +392,8 @@ def test_bounded_scenes_start_their_splats_in_the_visual_hull():
 def test_a_capture_with_sparse_points_starts_its_splats_there():
     """3D Gaussian splatting's start: splats at (at most ``n`` of) the points, in their
     colours, as wide as their neighbours are far."""
-    from nerf_stage.points import Points
-    from nerf_stage.scene_box import SceneBox
+    from nerf_stage.data.points import Points
+    from nerf_stage.render.scene_box import SceneBox
     from nerf_stage.splats.backbone import initial_splats
     from nerf_stage.splats.sh import SH_C0
 

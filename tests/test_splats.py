@@ -9,10 +9,9 @@ import trimesh
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
-from nerf_stage.regions import Region  # noqa: E402
-from nerf_stage.run import load_run  # noqa: E402
+from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
+from nerf_stage.edit.regions import Region  # noqa: E402
 from nerf_stage.splats import (  # noqa: E402
     BAKE_VERSION,
     SH_C0,
@@ -31,6 +30,7 @@ from nerf_stage.splats import (  # noqa: E402
     write_splats,
 )
 from nerf_stage.splats import baking as bake_module  # noqa: E402
+from nerf_stage.train.run import load_run  # noqa: E402
 from palette_core.basis import Basis, basis_terms  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 

@@ -8,13 +8,13 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage import losses  # noqa: E402
-from nerf_stage import trainer as trainer_module  # noqa: E402
-from nerf_stage.cameras import Intrinsics  # noqa: E402
-from nerf_stage.config import TrainConfig  # noqa: E402
-from nerf_stage.data import join_weights, load_dataset  # noqa: E402
-from nerf_stage.metrics import psnr  # noqa: E402
-from nerf_stage.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.data.cameras import Intrinsics  # noqa: E402
+from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
+from nerf_stage.train import losses  # noqa: E402
+from nerf_stage.train import trainer as trainer_module  # noqa: E402
+from nerf_stage.train.config import TrainConfig  # noqa: E402
+from nerf_stage.train.metrics import psnr  # noqa: E402
+from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 from palette_core.stack import read_stack  # noqa: E402
 
@@ -165,7 +165,7 @@ def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch, a
 
 
 def test_colour_transforms_learn_each_images_exposure_around_the_average():
-    from nerf_stage.appearance import Appearance
+    from nerf_stage.train.appearance import Appearance
 
     torch.manual_seed(0)
     gains = torch.tensor([0.7, 1.0, 1.3])  # their mean is the identity's
@@ -238,7 +238,7 @@ def test_the_sparsity_prior_is_steep_for_fog_and_flat_for_surfaces():
 
 
 def test_a_ray_bank_that_cannot_fit_is_refused_up_front():
-    from nerf_stage.trainer import _check_fits
+    from nerf_stage.train.trainer import _check_fits
 
     huge = np.broadcast_to(np.zeros(1, np.float32), (10**4, 10**4, 10**3, 4))  # no memory
     with pytest.raises(InputError, match="more than the"):

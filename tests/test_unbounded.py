@@ -6,14 +6,14 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.cameras import look_at, rig_poses  # noqa: E402
-from nerf_stage.contraction import FAR, contract, ray_interval, ray_points  # noqa: E402
-from nerf_stage.data import load_dataset  # noqa: E402
+from nerf_stage.data.cameras import look_at, rig_poses  # noqa: E402
+from nerf_stage.data.dataset import load_dataset  # noqa: E402
 from nerf_stage.fields.base import RaySampling  # noqa: E402
-from nerf_stage.occupancy import OccupancyGrid  # noqa: E402
-from nerf_stage.rendering import march_rays, scale_near_gradients  # noqa: E402
-from nerf_stage.run import load_run  # noqa: E402
-from nerf_stage.scene_box import CAMERA_REACH, scene_box  # noqa: E402
+from nerf_stage.render.contraction import FAR, contract, ray_interval, ray_points  # noqa: E402
+from nerf_stage.render.march import march_rays, scale_near_gradients  # noqa: E402
+from nerf_stage.render.occupancy import OccupancyGrid  # noqa: E402
+from nerf_stage.render.scene_box import CAMERA_REACH, scene_box  # noqa: E402
+from nerf_stage.train.run import load_run  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
 from .nerf_runs import tiny_config, trained  # noqa: E402
@@ -129,7 +129,7 @@ def test_an_unbounded_run_trains_saves_and_renders(still_life, tmp_path):
 
 
 def test_distortion_loss_is_the_pairwise_sum_and_prefers_compact_rays(rng):
-    from nerf_stage.losses import distortion_loss
+    from nerf_stage.train.losses import distortion_loss
 
     ray = torch.as_tensor(np.sort(rng.integers(0, 4, 40)))
     t = torch.cat([torch.sort(torch.as_tensor(rng.uniform(0, 3, int((ray == r).sum()))))[0]
@@ -150,7 +150,7 @@ def test_distortion_loss_is_the_pairwise_sum_and_prefers_compact_rays(rng):
 @pytest.mark.parametrize("gain, unbounded", [(5.0, False), (7.0, True)])
 def test_auto_keeps_the_box_for_transparent_images_unless_a_probe_fits_far_better(
         still_life, tmp_path, monkeypatch, gain, unbounded):
-    from nerf_stage import trainer
+    from nerf_stage.train import trainer
 
     probed = []
 

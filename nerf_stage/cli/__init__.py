@@ -12,7 +12,7 @@ import sys
 
 from palette_core.cli import ArgumentParser, run_cli
 
-from ..config import TrainConfig
+from ..train.config import TrainConfig
 
 PROG = "nerf-stage"
 
@@ -44,7 +44,3 @@ def _dispatch(argv) -> int:
     defaults = TrainConfig.defaults() if argv[:1] == ["train"] else None
     args = build_parser(defaults).parse_args(argv)
     return args.run(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

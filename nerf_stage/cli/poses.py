@@ -6,11 +6,9 @@ from pathlib import Path
 
 from palette_core.stack import DEFAULT_STACK
 
-from . import PROG
-
 
 def add(commands) -> None:
-    from ..sfm import CAMERA_MODELS, MAPPERS, MATCHERS
+    from ..data.sfm import CAMERA_MODELS, MAPPERS, MATCHERS
 
     poses = commands.add_parser(
         "poses", help="camera poses for a folder of photos (structure from motion, pycolmap)",
@@ -36,7 +34,7 @@ def add(commands) -> None:
 
 
 def run(args) -> int:
-    from ..sfm import estimate_poses
+    from ..data.sfm import estimate_poses
 
     report = estimate_poses(args.source, args.output, args.camera_model, args.matcher,
                             args.mapper, args.force)
@@ -52,7 +50,7 @@ def run(args) -> int:
               f"{', '.join(map(str, report.models))} photos; the largest is kept")
     print(f"wrote {args.output} (nerfstudio layout); next: palette-decompose "
           f"{Path(args.output) / 'images'} -o {Path(args.output) / DEFAULT_STACK}, then "
-          f"{PROG} train {args.output}")
+          f"nerf-stage train {args.output}")
     return 0
 
 

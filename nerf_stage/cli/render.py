@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..config import BAKE_FACTOR
+from ..train.config import BAKE_FACTOR
 
 
 def add_render(commands) -> None:
@@ -39,7 +39,7 @@ def add_render(commands) -> None:
     render.add_argument("-o", "--output", required=True, metavar="DIR")
     render.add_argument("--force", action="store_true",
                         help="overwrite existing outputs (and a render.npz of other views)")
-    render.set_defaults(run=render)
+    render.set_defaults(run=run_render)
 
 
 def add_eval(commands) -> None:
@@ -54,12 +54,12 @@ def add_eval(commands) -> None:
                                "by one)")
     evaluate.add_argument("--baked", nargs="?", type=int, const=BAKE_FACTOR, metavar="FACTOR",
                           help="score the baked render (render --baked) instead of the network's")
-    evaluate.set_defaults(run=evaluate)
+    evaluate.set_defaults(run=run_eval)
 
 
-def render(args) -> int:
-    from ..editing import RENDER_FILE, render_edits
-    from ..regions import parse_region
+def run_render(args) -> int:
+    from ..edit.editing import RENDER_FILE, render_edits
+    from ..edit.regions import parse_region
 
     regions = [region for text in args.region for region in parse_region(text)]
     done = render_edits(args.rundir, args.output, args.palette, args.harmonize, args.split,
@@ -72,9 +72,9 @@ def render(args) -> int:
     return 0
 
 
-def evaluate(args) -> int:
-    from ..evaluation import evaluate_run
+def run_eval(args) -> int:
     from ..fields import RGB
+    from ..train.evaluation import evaluate_run
 
     run, scores = evaluate_run(args.rundir, args.palette, args.baked)
     rec = scores["reconstruction"]

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from palette_core.palette_file import read_palette_json
 
-from . import PROG
-
 
 def add(commands) -> None:
     from ..splats import MAX_SPLATS, REFINE_STEPS, SPLAT_CACHE
@@ -30,7 +28,7 @@ def add(commands) -> None:
                            f"{REFINE_STEPS['cpu']} on the CPU, {REFINE_STEPS['cuda']} with "
                            "CUDA; 0: none)")
     bake.add_argument("--force", action="store_true", help="overwrite FILE")
-    bake.set_defaults(run=bake)
+    bake.set_defaults(run=run_bake)
     export = commands.add_parser(
         "export", help="write recoloured splats as a 3D Gaussian splatting PLY",
         description="Write the splats of a bake (nerf-stage bake), recoloured with a palette, "
@@ -42,20 +40,20 @@ def add(commands) -> None:
                         help="palette file of the run's K colours (default: the run's own)")
     export.add_argument("-o", "--output", required=True, metavar="FILE.ply")
     export.add_argument("--force", action="store_true", help="overwrite FILE.ply")
-    export.set_defaults(run=export)
+    export.set_defaults(run=run_export)
 
 
-def bake(args) -> int:
+def run_bake(args) -> int:
     from ..splats import bake_to
 
     splats, output = bake_to(args.rundir, args.output, args.max_splats, args.refine_steps,
                              args.force)
     print(f"wrote {len(splats)} splats to {output} ({output.stat().st_size / 2**20:.1f} MB); "
-          f"next: {PROG} export {args.output or args.rundir} --palette P.json -o scene.ply")
+          f"next: nerf-stage export {args.output or args.rundir} --palette P.json -o scene.ply")
     return 0
 
 
-def export(args) -> int:
+def run_export(args) -> int:
     from ..splats import export_ply, splats_of
 
     splats = splats_of(args.bake)

@@ -6,8 +6,7 @@ from __future__ import annotations
 from palette_core.cli import add_config_arguments, config_from_args
 from palette_core.stack import DEFAULT_STACK
 
-from ..config import CONFIG_ENV, TrainConfig
-from . import PROG
+from ..train.config import CONFIG_ENV, TrainConfig
 
 
 def add(commands, defaults: TrainConfig) -> None:
@@ -40,18 +39,19 @@ def add(commands, defaults: TrainConfig) -> None:
 
 
 def run(args) -> int:
-    from ..run import CHECKPOINT
-    from ..trainer import peak_memory, train_capture
+    from ..train.run import CHECKPOINT
+    from ..train.trainer import peak_memory, train_capture
 
     config = config_from_args(TrainConfig, args)
     done = train_capture(args.data, config, args.weights, args.output, args.frames_outside,
                          args.downscale, args.resume, args.force)
     dataset, log = done.dataset, done.run.record.log
     print(f"dataset: {dataset.root} ({dataset.layout} layout, {len(dataset.names)} frames, "
-          f"{len(dataset.indices('train'))} for training); weights: {done.weights}")
+          f"{len(dataset.indices('train'))} for training)")
+    print(f"weights: {done.weights}")
     limited = " (the --minutes limit)" if len(log) < config.total_iters else ""
     print(f"trained {config.backbone} ({config.strategy}) for {len(log)} iterations in "
           f"{log[-1]['seconds']:.0f} s{limited}, last batch PSNR {log[-1]['psnr']:.2f} dB, "
           f"peak memory {peak_memory(done.run.device)}")
-    print(f"wrote {done.rundir / CHECKPOINT}; next: {PROG} render {done.rundir} -o DIR")
+    print(f"wrote {done.rundir / CHECKPOINT}; next: nerf-stage render {done.rundir} -o DIR")
     return 0

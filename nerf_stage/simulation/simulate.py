@@ -25,7 +25,7 @@ from palette_core.palette_file import palette_to_hex
 from palette_core.stack import WeightStack, write_stack
 from palette_core.version import __version__
 
-from ..cameras import (
+from ..data.cameras import (
     SPLIT_PHASES,
     blender_transforms,
     focal_from_fov,

@@ -39,17 +39,18 @@ from tqdm import tqdm
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError, first_line
 
-from ..appearance import Appearance
-from ..cameras import Intrinsics
-from ..config import Strategy, TrainConfig
-from ..contraction import EXTENT
-from ..data import Dataset, join_weights
+from ..data.cameras import Intrinsics
+from ..data.dataset import Dataset, join_weights
+from ..data.points import Points
+from ..edit.regions import KEEP_WEIGHT, PixelSamples
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
-from ..losses import recorded_rgb_loss, ssim_loss, weight_loss
-from ..metrics import psnr_from_mse
-from ..points import Points
-from ..regions import KEEP_WEIGHT, PixelSamples
-from ..run import (
+from ..render.contraction import EXTENT
+from ..render.scene_box import SceneBox, scene_box, visual_hull
+from ..train.appearance import Appearance
+from ..train.config import Strategy, TrainConfig
+from ..train.losses import recorded_rgb_loss, ssim_loss, weight_loss
+from ..train.metrics import psnr_from_mse
+from ..train.run import (
     CHECKPOINT,
     CONFIG,
     RunBase,
@@ -60,8 +61,7 @@ from ..run import (
     run_fields,
     write_checkpoint,
 )
-from ..scene_box import SceneBox, scene_box, visual_hull
-from ..trainer import load_optimisers, next_iteration
+from ..train.trainer import load_optimisers, next_iteration
 from .model import Splats, covariances, with_residual
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
@@ -294,7 +294,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     if stack.basis == Basis.ADDITIVE:
         weights = weights * dataset.alpha[train_ids, ..., None]
     state = read_checkpoint(rundir / CHECKPOINT) if resume else None
-    if resume and TrainConfig.from_dict(state["config"]) != config:
+    if resume and not TrainConfig.from_dict(state["config"]).trains_like(config):
         raise InputError(f"{rundir} was trained with another config",
                          fixes=[("force", "to start afresh")])
     if resume:

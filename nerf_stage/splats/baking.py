@@ -34,9 +34,9 @@ from palette_core.basis import Basis
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
 
-from ..cameras import Intrinsics
+from ..data.cameras import Intrinsics
 from ..fields import RGB
-from ..run import Run, default_device, load_run, run_source
+from ..train.run import Run, default_device, load_run, run_source
 from .model import Splats, covariances, matrix_quaternions, read_splats, write_splats
 from .rasterise import MAX_ALPHA, draw
 

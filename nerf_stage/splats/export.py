@@ -11,7 +11,7 @@ import numpy as np
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
 
-from ..regions import Region
+from ..edit.regions import Region
 from .model import Splats
 from .sh import SH_C0
 

@@ -18,7 +18,7 @@ from palette_core.basis import Basis, basis_terms, n_terms
 from palette_core.errors import InputError
 from palette_core.stack import NpzReader
 
-from ..regions import Region
+from ..edit.regions import Region
 from .sh import sh_basis
 
 SPLAT_FORMAT = "palette-splats/1"

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..cameras import Intrinsics
+from ..data.cameras import Intrinsics
 from .model import Splats
 
 #: Pixels^2 added to every projected covariance: Mip-Splatting's 2D filter. (3D Gaussian

@@ -32,15 +32,16 @@ from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
 from palette_core.stack import WeightStack, default_stack, read_stack
 
+from ..data.dataset import Dataset, join_weights, load_dataset
+from ..fields import RGB, make_field
+from ..render.march import march_rays
+from ..render.occupancy import OccupancyGrid
+from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 from .appearance import Appearance
 from .backbones import BACKBONES
 from .config import Space, Strategy, TrainConfig
-from .data import Dataset, join_weights, load_dataset
-from .fields import RGB, make_field
 from .losses import distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse
-from .occupancy import OccupancyGrid
-from .rendering import march_rays
 from .run import (
     CHECKPOINT,
     CONFIG,
@@ -53,7 +54,6 @@ from .run import (
     restore,
     save_checkpoint,
 )
-from .scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 
 #: ``--space auto`` on images with transparent pixels (``_scene_box``): iterations of each
 #: space's probe, pixels it is scored on, and by how many dB the unbounded probe must beat
@@ -129,7 +129,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     if stack.basis == Basis.ADDITIVE:
         weights = weights * dataset.alpha[train_ids, ..., None]
     state = read_checkpoint(rundir / CHECKPOINT) if resume else None
-    if resume and TrainConfig.from_dict(state["config"]) != config:
+    if resume and not TrainConfig.from_dict(state["config"]).trains_like(config):
         raise InputError(f"{rundir} was trained with another config",
                          fixes=[("force", "to start afresh")])
     box = (box_from_dict(state["box"], str(rundir / CHECKPOINT)) if resume else

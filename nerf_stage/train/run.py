@@ -19,16 +19,16 @@ from palette_core.basis import Basis, basis_terms, check_basis, n_terms
 from palette_core.errors import InputError, first_line
 from palette_core.outputs import atomic_outputs
 
+from ..data.cameras import Intrinsics
+from ..data.dataset import Dataset, check_downscale, load_dataset
+from ..edit.regions import KEEP_WEIGHT, PixelSamples
+from ..fields import RGB, Field, RaySampling, make_field
+from ..render.march import render_rays, sample_positions
+from ..render.occupancy import OccupancyGrid
+from ..render.scene_box import SceneBox, box_from_dict, normalised_rays
 from .appearance import Appearance
 from .backbones import BACKBONES
-from .cameras import Intrinsics
 from .config import BAKE_FACTOR, TrainConfig
-from .data import Dataset, check_downscale, load_dataset
-from .fields import RGB, Field, RaySampling, make_field
-from .occupancy import OccupancyGrid
-from .regions import KEEP_WEIGHT, PixelSamples
-from .rendering import render_rays, sample_positions
-from .scene_box import SceneBox, box_from_dict, normalised_rays
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"

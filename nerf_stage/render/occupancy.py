@@ -16,7 +16,7 @@ import torch
 from scipy.ndimage import distance_transform_cdt
 from torch import nn
 
-from .cameras import Intrinsics
+from ..data.cameras import Intrinsics
 from .contraction import ray_points
 from .scene_box import SceneBox, visual_hull
 

@@ -162,8 +162,17 @@ class TrainConfig:
         return getattr(self, self.backbone)
 
     def to_dict(self) -> dict:
-        """Plain JSON types only (strings for the enums), as saved in config.json."""
-        return json.loads(json.dumps(asdict(self)))
+        """Plain JSON types only (strings for the enums), as saved in config.json, with the
+        chosen backbone's settings only (``from_dict`` gives the others their defaults, and
+        reads files that hold every backbone's)."""
+        data = json.loads(json.dumps(asdict(self)))
+        return {key: value for key, value in data.items()
+                if key not in _NESTED or key == self.backbone}
+
+    def trains_like(self, other: TrainConfig) -> bool:
+        """Whether ``other`` trains the same run (``to_dict``: the other backbones' settings
+        do not count): what ``--resume`` asks of a run folder's config."""
+        return self.to_dict() == other.to_dict()
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "config") -> TrainConfig:
@@ -211,7 +220,7 @@ class TrainConfig:
             raise InputError(f"cannot read {CONFIG_ENV}={path}: {exc}") from None
         if not isinstance(data, dict):
             raise InputError(f"{CONFIG_ENV}={path}: expected an object of config fields")
-        base = cls().to_dict()
+        base = json.loads(json.dumps(asdict(cls())))
         for group in _NESTED:
             section = data.get(group, {})
             if not isinstance(section, dict):

@@ -27,10 +27,10 @@ from palette_core.palette_file import read_palette_json
 from palette_core.stack import NpzReader, WeightStack, check_names
 from palette_core.swatch import palette_swatch
 
-from .cameras import Intrinsics, orbit_poses
-from .fields import RGB
+from ..data.cameras import Intrinsics, orbit_poses
+from ..fields import RGB
+from ..train.run import Run, load_run, run_source
 from .regions import ColourRegion, PixelSamples, Region, check_count, region_from_dict
-from .run import Run, load_run, run_source
 
 RENDER_FILE = "render.npz"
 RENDER_FORMAT = "palette-render/2"

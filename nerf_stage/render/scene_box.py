@@ -18,8 +18,8 @@ from scipy.ndimage import maximum_filter
 
 from palette_core.errors import InputError
 
+from ..data.cameras import Intrinsics, camera_rays
 from . import contraction
-from .cameras import Intrinsics, camera_rays
 
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
 OPAQUE_ALPHA = 1 - 0.5 / 255  # images whose pixels are all this opaque show no background

@@ -8,7 +8,7 @@ import torch
 
 from palette_core.basis import Basis
 
-from .fields.base import tone_map
+from ..fields.base import tone_map
 
 SPARSITY_SCALE = 0.01  # optical thickness of a step where the sparsity prior bends
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable
 from dataclasses import astuple, dataclass
 from pathlib import Path, PurePosixPath
 
@@ -148,7 +149,8 @@ class Dataset:
 
 def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
                  frames_outside: bool = False, downscale: int = 1) -> Dataset:
-    """Read a Blender or nerfstudio dataset folder, its images ``downscale`` times smaller.
+    """Read a dataset folder in any of the ``LAYOUTS``, its images ``downscale`` times
+    smaller.
 
     A frame's ``file_path`` must lie inside ``root`` (neither absolute nor climbing out
     with ``..``) unless ``frames_outside``: a transforms file from elsewhere cannot make
@@ -164,32 +166,14 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     root = Path(root)
     background = np.asarray(background, np.float64).reshape(3)
     check_downscale(downscale)
-    if (root / "transforms_train.json").is_file():
-        layout = "blender"
-        names, splits, poses, angle, off_ring = _read_blender(root, frames_outside)
-        with open_image(root / names[0]) as first:
-            width, height = first.size
-        focal = focal_length(width, angle)
-        frame_intrinsics = [checked_camera(str(root / "transforms_train.json"), width, height,
-                                           focal, focal, width / 2, height / 2)]
-        distortions, points = [Distortion()], None
-    elif (root / "transforms.json").is_file():
-        layout = "nerfstudio"
-        names, splits, poses, frame_intrinsics, distortions, off_ring, points = (
-            _read_nerfstudio(root, frames_outside))
-    elif (model := find_model(root)) is not None:
-        layout = "colmap"
-        reconstruction = read_model(model)
-        names, poses, frame_intrinsics, distortions = model_frames(reconstruction, str(root))
-        points = model_points(reconstruction)
-        names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
-                 for name in names]
-        splits, off_ring = _holdout(len(names)), None
-    else:
-        raise InputError(f"{root} holds neither transforms_train.json (Blender layout), "
-                         "transforms.json (nerfstudio layout) nor a COLMAP model (sparse/0): "
-                         "make one from photos with nerf-stage poses or from a scene with "
-                         "nerf-stage simulate")
+    layout = next((name for name, reader in LAYOUTS.items() if reader.holds(root)), None)
+    if layout is None:
+        held = ", ".join(f"{reader.marker} ({name} layout)" for name, reader in LAYOUTS.items())
+        raise InputError(f"{root} holds none of {held}: make one from photos with nerf-stage "
+                         "poses or from a scene with nerf-stage simulate")
+    frames = LAYOUTS[layout].read(root, frames_outside)
+    names, splits, poses, points = frames.names, frames.splits, frames.poses, frames.points
+    frame_intrinsics, distortions, off_ring = frames.cameras, frames.distortions, frames.off_ring
     lenses = _lenses(frame_intrinsics, distortions, len(names), root)
     frame_intrinsics = [lens.target for lens in lenses] if lenses else frame_intrinsics
     intrinsics = frame_intrinsics[0]
@@ -384,7 +368,34 @@ def _frame_path(name: str, where: str, root: Path, frames_outside: bool) -> str:
     return path.as_posix()
 
 
-def _read_blender(root: Path, frames_outside: bool):
+@dataclass(frozen=True)
+class Frames:
+    """What a layout's reader finds in a dataset folder (``Dataset``'s fields of the same
+    names): frame paths, splits, (N, 4, 4) poses, the cameras (one for all frames, or one a
+    frame) and their distortions, (N,) off-ring marks (or None) and sparse points (or
+    None)."""
+
+    names: list[str]
+    splits: list[str]
+    poses: np.ndarray
+    cameras: list[Intrinsics]
+    distortions: list[Distortion]
+    off_ring: np.ndarray | None = None
+    points: Points | None = None
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A dataset layout: the file that marks it (``marker``), whether a folder holds it
+    (``holds(root)``), and its reader (``read(root, frames_outside) -> Frames``)."""
+
+    marker: str
+    holds: Callable[[Path], bool]
+    read: Callable[[Path, bool], Frames]
+
+
+def _read_blender(root: Path, frames_outside: bool) -> Frames:
+    """NeRF's synthetic layout: ``transforms_{train,val,test}.json``, one camera."""
     names, splits, poses, angle, off_ring = [], [], [], None, []
     for split in SPLITS:
         path = root / f"transforms_{split}.json"
@@ -402,10 +413,27 @@ def _read_blender(root: Path, frames_outside: bool):
         splits += [split] * len(split_names)
     if not names:
         raise InputError(f"{root}: the transforms files list no frames")
-    return names, splits, np.array(poses), angle, np.array(off_ring)
+    with open_image(root / names[0]) as first:
+        width, height = first.size
+    focal = focal_length(width, angle)
+    camera = checked_camera(str(root / "transforms_train.json"), width, height, focal, focal,
+                            width / 2, height / 2)
+    return Frames(names, splits, np.array(poses), [camera], [Distortion()], np.array(off_ring))
 
 
-def _read_nerfstudio(root: Path, frames_outside: bool):
+def _read_colmap(root: Path, frames_outside: bool) -> Frames:
+    """A COLMAP model (``sparse/0``, text or binary) with its photos in ``images/``."""
+    model = find_model(root)
+    reconstruction = read_model(model)
+    names, poses, cameras, distortions = model_frames(reconstruction, str(root))
+    names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
+             for name in names]
+    return Frames(names, _holdout(len(names)), poses, cameras, distortions,
+                  points=model_points(reconstruction))
+
+
+def _read_nerfstudio(root: Path, frames_outside: bool) -> Frames:
+    """nerfstudio's layout: ``transforms.json``, a camera (and lens) per frame or for all."""
     path = root / "transforms.json"
     data = _load_json(path)
     names, poses, off_ring = _frames(data, path, "", frames_outside)
@@ -430,8 +458,19 @@ def _read_nerfstudio(root: Path, frames_outside: bool):
             raise InputError(f"{path}: ply_file_path must be a file name")
         points = read_points(root / _frame_path(data["ply_file_path"], f"{path}: ply_file_path",
                                                 root, frames_outside))
-    return (names, _nerfstudio_splits(data, names, path), np.array(poses), cameras, lenses,
-            np.array(off_ring), points)
+    return Frames(names, _nerfstudio_splits(data, names, path), np.array(poses), cameras,
+                  lenses, np.array(off_ring), points)
+
+
+#: Dataset layouts, looked for in this order; a new layout is a reader and an entry here.
+LAYOUTS = {
+    "blender": Layout("transforms_train.json", lambda root: (root / "transforms_train.json")
+                      .is_file(), _read_blender),
+    "nerfstudio": Layout("transforms.json", lambda root: (root / "transforms.json").is_file(),
+                         _read_nerfstudio),
+    "colmap": Layout("a COLMAP model (sparse/0)", lambda root: find_model(root) is not None,
+                     _read_colmap),
+}
 
 
 def _nerfstudio_lens(fields: dict, where) -> Distortion:

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ..fields.base import RaySampling
 from . import contraction
-from .fields.base import RaySampling
 from .occupancy import OccupancyGrid
 
 TERMINATION = 1e-4  # samples behind less transmittance skip the colour part

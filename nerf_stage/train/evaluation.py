@@ -14,11 +14,11 @@ import numpy as np
 from palette_core.basis import Basis
 from palette_core.palette_file import read_palette_json
 
-from .editing import WeightRender, render_poses
-from .fields import RGB
+from ..edit.editing import WeightRender, render_poses
+from ..fields import RGB
+from ..simulation import SimulationRecord
 from .metrics import image_scores
 from .run import Run, RunBase, load_run
-from .simulation import SimulationRecord
 
 
 def resimulated_views(simulation: SimulationRecord, palette: np.ndarray, poses: np.ndarray,
@@ -26,7 +26,7 @@ def resimulated_views(simulation: SimulationRecord, palette: np.ndarray, poses: 
     """(N, H, W, 3) views of the simulated scene behind a transport stack, re-traced with
     its editable materials (or those named in ``only``: a local edit) set to ``palette``
     and composited like the dataset's PNGs."""
-    from .simulation import load_scene, render_terms, with_palette
+    from ..simulation import load_scene, render_terms, with_palette
 
     scene = simulation.applied_to(load_scene(simulation.scene))
     radiance, alpha = render_terms(with_palette(scene, palette, only), poses, split=False)
