@@ -56,9 +56,9 @@ import numpy as np
 from bench_scenes import error_map, rendered
 from PIL import Image
 
+from nerf_stage.backbones import BACKBONES
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.data.points import POINTS_FILE, write_points
-from nerf_stage.train.backbones import BACKBONES
 from nerf_stage.train.config import TrainConfig
 from nerf_stage.train.metrics import image_scores
 from nerf_stage.train.run import load_run

@@ -30,10 +30,10 @@ from bench_nerf import scene_run, table
 from PIL import Image
 
 from nerf_stage.edit.editing import render_poses, render_weights
+from nerf_stage.edit.evaluation import resimulated_views
 from nerf_stage.edit.regions import parse_region
 from nerf_stage.simulation import SimulationRecord
 from nerf_stage.train.config import TrainConfig
-from nerf_stage.train.evaluation import resimulated_views
 from nerf_stage.train.metrics import image_scores
 
 SCENE, OBJECT = "clay-twins", "clay ball"

@@ -33,11 +33,11 @@ import numpy as np
 from bench_nerf import scene_run, table
 from PIL import Image
 
+from nerf_stage.backbones import BACKBONES
 from nerf_stage.edit.editing import WeightRender, render_poses
+from nerf_stage.edit.evaluation import composited, evaluate, rolled_palette
 from nerf_stage.simulation import BUILTIN_SCENES
-from nerf_stage.train.backbones import BACKBONES
 from nerf_stage.train.config import TrainConfig
-from nerf_stage.train.evaluation import composited, evaluate, rolled_palette
 from nerf_stage.train.metrics import edit_response
 from palette_core.basis import Basis, weights_to_rgb
 from palette_core.stack import read_stack

@@ -34,10 +34,10 @@ from bench_simulated import figure
 
 from nerf_stage.data.cameras import off_ring_poses
 from nerf_stage.edit.editing import WeightRender, render_poses
+from nerf_stage.edit.evaluation import composited
 from nerf_stage.simulation import BUILTIN_SCENES, load_scene, render_terms
 from nerf_stage.splats import MAX_SPLATS, bake_run, render_splats, write_splats
 from nerf_stage.train.config import TrainConfig
-from nerf_stage.train.evaluation import composited
 from nerf_stage.train.metrics import psnr
 
 

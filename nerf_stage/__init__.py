@@ -6,7 +6,7 @@ backbones), ``render`` (the scene box, occupancy, marching), ``train`` (settings
 folders, the loop, scores), ``edit`` (weight renders recoloured, regions), ``splats``
 (3D Gaussians: a backbone, bakes, the rasteriser, the PLY), ``simulation`` (the path
 tracer) and ``cli``. The weight NeRF modules need torch (the ``nerf`` extra);
-``train.config``, ``train.backbones``, ``data.cameras`` and ``train.metrics`` need none.
+``backbones``, ``train.config``, ``data.cameras`` and ``train.metrics`` need none.
 Imports ``palette_core`` and ``harmonize``; never the reverse. docs/architecture.md
 shows how they fit together.
 """

@@ -202,7 +202,7 @@ def colmap_capture(folder: Path, rng, binary: bool, camera: str = "SIMPLE_RADIAL
 def small_render(path: Path, rng) -> Path:
     """A weight render of one 4x3 view with a sample behind each pixel."""
     from nerf_stage.edit.editing import WeightRender, write_render
-    from nerf_stage.edit.regions import PixelSamples
+    from nerf_stage.render.samples import PixelSamples
 
     weights = rng.dirichlet(np.ones(K), (1, 3, 4)).astype(np.float32)
     samples = PixelSamples(np.arange(12, dtype=np.int64),

@@ -78,7 +78,7 @@ def test_cycle_finder_finds_a_cycle():
 
 
 @pytest.mark.parametrize("module, heavy", [("nerf_stage.train.metrics", ("numba", "torch")),
-                                           ("nerf_stage.train.backbones", ("torch",)),
+                                           ("nerf_stage.backbones", ("torch",)),
                                            ("nerf_stage.data.dataset", ("torch", "pycolmap")),
                                            ("palette_core", ("torch", "zarr", "viser"))])
 def test_light_modules_import_no_heavy_dependency(module, heavy):

@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from nerf_stage.edit.regions import ColourRegion, PixelSamples, Region, parse_region, read_regions
+from nerf_stage.edit.regions import ColourRegion, Region, parse_region, read_regions
+from nerf_stage.render.samples import PixelSamples
 from nerf_stage.simulation import (
     load_scene,
     parse_scene,

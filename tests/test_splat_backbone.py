@@ -10,6 +10,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from nerf_stage.backbones import SplatConfig  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.fields.base import RGB  # noqa: E402
@@ -19,7 +20,6 @@ from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
 from nerf_stage.splats.sh import sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import Densification  # noqa: E402
-from nerf_stage.train.backbones import SplatConfig  # noqa: E402
 from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402

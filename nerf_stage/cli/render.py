@@ -73,8 +73,8 @@ def run_render(args) -> int:
 
 
 def run_eval(args) -> int:
+    from ..edit.evaluation import evaluate_run
     from ..fields import RGB
-    from ..train.evaluation import evaluate_run
 
     run, scores = evaluate_run(args.rundir, args.palette, args.baked)
     rec = scores["reconstruction"]

@@ -29,8 +29,9 @@ from palette_core.swatch import palette_swatch
 
 from ..data.cameras import Intrinsics, orbit_poses
 from ..fields import RGB
+from ..render.samples import PixelSamples
 from ..train.run import Run, load_run, run_source
-from .regions import ColourRegion, PixelSamples, Region, check_count, region_from_dict
+from .regions import ColourRegion, Region, check_count, region_from_dict
 
 RENDER_FILE = "render.npz"
 RENDER_FORMAT = "palette-render/2"
@@ -57,7 +58,7 @@ class WeightRender:
         Run directory, checkpoint iteration, when its training ended (the log's last
         ``seconds``, so that a run trained again in the same folder is rendered again)
         and views: what the render came from.
-    samples : regions.PixelSamples or None
+    samples : render.samples.PixelSamples or None
         Where each pixel's light comes from, kept to split the weights by regions.
     regions : list of regions.Region or regions.ColourRegion
     inside : (N, H, W, M) float32 or None

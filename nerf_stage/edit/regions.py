@@ -13,17 +13,16 @@ front of the pixel's median termination) whose samples lie in a region
 through a surface the field left not quite opaque does not move it out of the region.
 It is exact for a pixel whose samples all lie on one side; a deferred field
 (``GridConfig.deferred``) has one colour per ray, so splitting a pixel's weights is the
-only split there is. The samples are kept with a render, so moving a region splits again
-without the network. On the clay-twins benchmark (docs/selections.md) the first half
-scores 34.0 to 34.2 dB against the re-simulated edit where the share of all the light
-scores 31.9 to 32.4 dB, and the median sample alone 32.0 to 32.7 dB.
+only split there is. The samples are kept with a render (``render.samples``), so moving a
+region splits again without the network; docs/selections.md measures the choice of the
+first half against the alternatives.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +32,6 @@ from palette_core.json_file import read_json
 from palette_core.selection import Selection
 
 SHAPES = ("box", "ellipsoid", "colour")
-#: Samples below this compositing weight are not kept (``PixelSamples``), but for each ray's
-#: strongest: together they hold a negligible share of any pixel that is not all fog.
-KEEP_WEIGHT = 1e-3
 
 
 @dataclass(frozen=True)
@@ -193,58 +189,5 @@ def read_regions(path: str | os.PathLike) -> list[Region | ColourRegion]:
     return [region_from_dict(r, f"region file {path}") for r in regions]
 
 
-@dataclass
-class PixelSamples:
-    """Where the light of each pixel of some views comes from: its rays' samples, ordered by
-    pixel (stably: in marching order within a pixel; the rays of a supersampled pixel
-    interleave, so their first half of light is the pixel's, roughly).
-
-    Attributes
-    ----------
-    pixel : (P,) int64
-        Each sample's pixel, an index into the views' flattened (N, H, W) pixels.
-    point : (P, 3) float32
-        World positions (the sky of an unbounded scene lies a thousand box sizes away).
-    weight : (P,) float32
-        Compositing weights T_i alpha_i, averaged over the pixel's rays; samples below
-        ``KEEP_WEIGHT`` are dropped, but for each ray's strongest.
-    """
-
-    pixel: np.ndarray
-    point: np.ndarray
-    weight: np.ndarray
-    front: np.ndarray = field(init=False, repr=False)
-    """(P,) which samples lie in front of their pixel's median termination (the one that
-    crosses it included): those that bring the first half of its light."""
-
-    def __post_init__(self):
-        order = np.argsort(self.pixel, kind="stable")
-        self.pixel, self.point = self.pixel[order], self.point[order]
-        self.weight = self.weight[order]
-        if not len(self.pixel):
-            self.front = np.zeros(0, bool)
-            return
-        first = np.r_[0, np.flatnonzero(np.diff(self.pixel)) + 1]  # each pixel's first sample
-        before = np.cumsum(self.weight, dtype=np.float64) - self.weight
-        before -= np.repeat(before[first], np.diff(np.r_[first, len(self.pixel)]))
-        total = np.bincount(self.pixel, self.weight)
-        self.front = before < 0.5 * total[self.pixel]
-
-    def shares(self, regions: list[Region], shape: tuple[int, ...]) -> np.ndarray:
-        """(shape) float32 in [0, 1]: for views of ``shape`` (N, H, W), each pixel's share of
-        the first half of its light from samples inside any of ``regions`` (module
-        docstring); 0 where a pixel has no samples."""
-        n = math.prod(shape)
-        pixel, point, weight = (x[self.front] for x in (self.pixel, self.point, self.weight))
-        inside = np.zeros(len(pixel), bool)
-        for region in regions:
-            inside |= region.contains(point)
-        total = np.bincount(pixel, weight, minlength=n)
-        within = np.bincount(pixel[inside], weight[inside], minlength=n)
-        share = np.divide(within, total, out=np.zeros(n), where=total > 0)
-        return np.clip(share, 0, 1).astype(np.float32).reshape(shape)
-
-
-
-__all__ = ["ColourRegion", "KEEP_WEIGHT", "PixelSamples", "Region", "SHAPES", "parse_region",
+__all__ = ["ColourRegion", "Region", "SHAPES", "parse_region",
            "read_regions", "region_from_dict"]

@@ -1,7 +1,7 @@
 """Radiance-field backbones behind the abstract ``Field`` (``base``).
 
 Which backbones exist, their settings and where their fields live is the torch-free
-table ``nerf_stage.train.backbones.BACKBONES``; adding a backbone is one module here with a
+table ``nerf_stage.backbones.BACKBONES``; adding a backbone is one module here with a
 ``Field`` subclass and one entry there (docs/architecture.md).
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..train.backbones import BACKBONES
+from ..backbones import BACKBONES
 from .base import ACTIVATIONS, RGB, Field, RaySampling, positional_encoding
 from .grid import GridField
 from .mlp import MLPField

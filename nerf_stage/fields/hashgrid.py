@@ -17,7 +17,7 @@ import math
 import torch
 from torch import nn
 
-from ..train.backbones import HashConfig
+from ..backbones import HashConfig
 from .base import RGB, Field, RaySampling
 from .grid import GridField, _Trilinear
 

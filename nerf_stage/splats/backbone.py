@@ -42,9 +42,9 @@ from palette_core.errors import InputError, first_line
 from ..data.cameras import Intrinsics
 from ..data.dataset import Dataset, join_weights
 from ..data.points import Points
-from ..edit.regions import KEEP_WEIGHT, PixelSamples
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
 from ..render.contraction import EXTENT
+from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, scene_box, visual_hull
 from ..train.appearance import Appearance
 from ..train.config import Strategy, TrainConfig
@@ -162,7 +162,7 @@ class SplatRun(RunBase):
                intrinsics: Intrinsics | list[Intrinsics] | None = None,
                samples: bool = False) -> tuple:
         """Draw whole views (``Run.render``'s contract): (N, H, W, C) values premultiplied
-        by opacity, (N, H, W) opacity and, with ``samples``, ``regions.PixelSamples``: each
+        by opacity, (N, H, W) opacity and, with ``samples``, ``render.samples.PixelSamples``: each
         pixel's splats at their centres, with their contributions (those below
         ``KEEP_WEIGHT`` dropped, but each pixel's strongest)."""
         cameras = (intrinsics if isinstance(intrinsics, list)

@@ -2,7 +2,7 @@
 palette weights of the light it sends (``model.Splats``; docs/splats.md).
 
 The bake keeps only what the training views need. Their pixels are rendered with the
-samples their light comes from (``regions.PixelSamples``); each pixel adds one point, its
+samples their light comes from (``render.samples.PixelSamples``); each pixel adds one point, its
 median termination (where its ray reaches half of its light), with its opacity as its light
 and its palette weights (divided by that opacity), to a cell of a grid over the scene box,
 cells as large as a training pixel where the light stops. The points of a cell are split

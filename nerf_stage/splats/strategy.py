@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from ..train.backbones import SplatConfig
+from ..backbones import SplatConfig
 from .model import rotation_matrices
 
 SPLIT_SHRINK = 1.6  # a split splat's two halves are this many times smaller (3DGS's 0.8 x 2)

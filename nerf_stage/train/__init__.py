@@ -1,3 +1,3 @@
-"""Training and scoring a run: its settings (``config``, ``backbones``, ``checks``), the run
-folder (``run``), the loop (``trainer``) with its losses and per-image appearance, and the
-scores (``metrics``, ``evaluation``). docs/training.md."""
+"""Training a run: its settings (``config``), the run folder (``run``), the loop
+(``trainer``) with its losses and per-image appearance, and the metrics it reports
+(``metrics``). docs/training.md."""

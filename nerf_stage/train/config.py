@@ -17,8 +17,8 @@ from pathlib import Path
 
 from palette_core.errors import InputError
 
-from .backbones import BACKBONES, Backbone, GridConfig, HashConfig, MLPConfig, SplatConfig
-from .checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, member, positive
+from ..backbones import BACKBONES, Backbone, GridConfig, HashConfig, MLPConfig, SplatConfig
+from ..checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, member, positive
 
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
 CONFIG_ENV = "NERF_STAGE_CONFIG"

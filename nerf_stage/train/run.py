@@ -19,15 +19,15 @@ from palette_core.basis import Basis, basis_terms, check_basis, n_terms
 from palette_core.errors import InputError, first_line
 from palette_core.outputs import atomic_outputs
 
+from ..backbones import BACKBONES
 from ..data.cameras import Intrinsics
 from ..data.dataset import Dataset, check_downscale, load_dataset
-from ..edit.regions import KEEP_WEIGHT, PixelSamples
 from ..fields import RGB, Field, RaySampling, make_field
 from ..render.march import render_rays, sample_positions
 from ..render.occupancy import OccupancyGrid
+from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays
 from .appearance import Appearance
-from .backbones import BACKBONES
 from .config import BAKE_FACTOR, TrainConfig
 
 CHECKPOINT = "checkpoint.pt"
@@ -192,7 +192,7 @@ class Run(RunBase):
         values : (N, H, W, C) float32
             The field's outputs (weights, or RGB) premultiplied by opacity.
         acc : (N, H, W) float32
-        pixel_samples : regions.PixelSamples
+        pixel_samples : render.samples.PixelSamples
             Only with ``samples``: where each pixel's light comes from (to split its
             weights by regions).
         """

@@ -32,13 +32,13 @@ from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
 from palette_core.stack import WeightStack, default_stack, read_stack
 
+from ..backbones import BACKBONES
 from ..data.dataset import Dataset, join_weights, load_dataset
 from ..fields import RGB, make_field
 from ..render.march import march_rays
 from ..render.occupancy import OccupancyGrid
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 from .appearance import Appearance
-from .backbones import BACKBONES
 from .config import Space, Strategy, TrainConfig
 from .losses import distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse

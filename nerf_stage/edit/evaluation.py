@@ -14,11 +14,11 @@ import numpy as np
 from palette_core.basis import Basis
 from palette_core.palette_file import read_palette_json
 
-from ..edit.editing import WeightRender, render_poses
 from ..fields import RGB
 from ..simulation import SimulationRecord
-from .metrics import image_scores
-from .run import Run, RunBase, load_run
+from ..train.metrics import image_scores
+from ..train.run import Run, RunBase, load_run
+from .editing import WeightRender, render_poses
 
 
 def resimulated_views(simulation: SimulationRecord, palette: np.ndarray, poses: np.ndarray,
