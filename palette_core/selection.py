@@ -152,7 +152,7 @@ def recolor_local(weights: np.ndarray, palette: np.ndarray, edits: list[LocalEdi
 def _feathered(m: np.ndarray, sigma: float) -> np.ndarray:
     """(H, W) ``m`` blurred by a Gaussian of ``sigma`` pixels (reflected at the image's
     border, cut at 4 sigma), computed only around the selected pixels, where it is not 0."""
-    from scipy.ndimage import gaussian_filter  # here: a 30 ms import every command would pay
+    from scipy.ndimage import gaussian_filter  # here: an import every command would otherwise pay
 
     rows, columns = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
     if not len(rows):

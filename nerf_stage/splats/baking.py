@@ -54,15 +54,12 @@ SIDE_OFFSET = 0.25
 #: training views' resolution leave no holes where a browser draws them finer.
 FILTER = 0.4
 MIN_ALPHA = 0.05  # the first splats' opacities at least (``refine`` moves them)
-#: Views drawn and fitted by ``refine`` on the CPU and on a CUDA device, where a step takes
-#: about 15 ms (H200) and the steps past 500 still gain 1-2 dB on the training ring's test
-#: views (docs/splats.md).
+#: Views drawn and fitted by ``refine`` on the CPU and on a CUDA device, where steps are
+#: cheap and the steps past 500 still gain on the test views (docs/splats.md measures both).
 REFINE_STEPS = {"cpu": 500, "cuda": 3000}
 #: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
-#: logits, palette weights (or their logits, for the additive basis). Chosen on clay-twins
-#: (docs/splats.md): the first rates tried (a fifth of a cell a step for the centres, two to
-#: four times these for scales, rotations and weights) left the splats jittering, 4 dB
-#: lower.
+#: logits, palette weights (or their logits, for the additive basis); larger ones left the
+#: splats jittering (docs/splats.md, where they were chosen).
 LEARNING_RATES = {"centres": 0.02, "scales": 0.005, "rotations": 0.001, "opacities": 0.05,
                   "weights": 0.0025}
 

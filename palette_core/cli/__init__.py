@@ -70,9 +70,9 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
 
 def exit_without_teardown(code: int) -> NoReturn:
     """End a finished command's process with ``code``, skipping Python's teardown of its
-    modules: after numba has run, freeing them takes 0.1 to 0.3 s of a one-photo
-    ``palette-decompose`` (docs/benchmarks.md, "The palette step by stage"). Every output is closed
-    and in place by then (``outputs.py``); the standard streams are flushed here."""
+    modules: after numba has run, freeing them is a noticeable share of a one-photo
+    ``palette-decompose`` (docs/benchmarks.md, "The palette step by stage"). Every output is
+    closed and in place by then (``outputs.py``); the standard streams are flushed here."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
