@@ -40,7 +40,7 @@ from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError, first_line
 
 from ..data.cameras import Intrinsics
-from ..data.dataset import Dataset, join_weights
+from ..data.dataset import Dataset
 from ..data.points import Points
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
 from ..render.contraction import EXTENT
@@ -55,13 +55,11 @@ from ..train.run import (
     CONFIG,
     RunBase,
     RunRecord,
-    check_rundir,
     default_device,
-    read_checkpoint,
     run_fields,
     write_checkpoint,
 )
-from ..train.trainer import load_optimisers, next_iteration
+from ..train.trainer import load_optimisers, next_iteration, training_targets
 from .model import Splats, covariances, with_residual
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
@@ -287,16 +285,9 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         raise InputError("the splats backbone trains two-stage or rgb, not traditional")
     device = device or default_device()
     rundir = Path(rundir)
-    check_rundir(rundir, resume, force)
+    weights, state = training_targets(config, dataset, stack, rundir, resume, force)
     settings = config.splats
     train_ids = dataset.indices("train")
-    weights = join_weights(dataset, stack, "train")  # (n, H, W, M)
-    if stack.basis == Basis.ADDITIVE:
-        weights = weights * dataset.alpha[train_ids, ..., None]
-    state = read_checkpoint(rundir / CHECKPOINT) if resume else None
-    if resume and not TrainConfig.from_dict(state["config"]).trains_like(config):
-        raise InputError(f"{rundir} was trained with another config",
-                         fixes=[("force", "to start afresh")])
     if resume:
         run = _from_state(state, str(rundir / CHECKPOINT), device)
     else:

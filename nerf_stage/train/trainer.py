@@ -122,16 +122,9 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
                                    progress, device)
     device = device or default_device()
     rundir = Path(rundir)
-    check_rundir(rundir, resume, force)
-    weights = join_weights(dataset, stack, "train")  # (n, H, W, M)
+    weights, state = training_targets(config, dataset, stack, rundir, resume, force)
     stack = replace(stack, weights=[])  # the stack's own maps (full-size) can be freed now
     train_ids = dataset.indices("train")
-    if stack.basis == Basis.ADDITIVE:
-        weights = weights * dataset.alpha[train_ids, ..., None]
-    state = read_checkpoint(rundir / CHECKPOINT) if resume else None
-    if resume and not TrainConfig.from_dict(state["config"]).trains_like(config):
-        raise InputError(f"{rundir} was trained with another config",
-                         fixes=[("force", "to start afresh")])
     box = (box_from_dict(state["box"], str(rundir / CHECKPOINT)) if resume else
            _scene_box(config, dataset, stack, train_ids, weights, device, progress))
     run = _new_run(config, box, dataset, stack, train_ids, device)
@@ -191,6 +184,23 @@ def next_iteration(config: TrainConfig, it: int, seconds: float,
     if seconds < 60 * config.minutes * share:
         return it
     return config.pretrain_iters if pretraining else last
+
+
+def training_targets(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: Path,
+                     resume: bool, force: bool) -> tuple[np.ndarray, dict | None]:
+    """What every backbone's training starts from, once ``rundir`` is as ``resume`` and
+    ``force`` ask (``check_rundir``): the (n, H, W, M) weights of the training frames
+    (premultiplied by alpha for the additive basis) and, when resuming, the checkpoint's
+    state, whose config must train like ``config``."""
+    check_rundir(rundir, resume, force)
+    weights = join_weights(dataset, stack, "train")
+    if stack.basis == Basis.ADDITIVE:
+        weights = weights * dataset.alpha[dataset.indices("train"), ..., None]
+    state = read_checkpoint(rundir / CHECKPOINT) if resume else None
+    if resume and not TrainConfig.from_dict(state["config"]).trains_like(config):
+        raise InputError(f"{rundir} was trained with another config",
+                         fixes=[("force", "to start afresh")])
+    return weights, state
 
 
 def peak_memory(device: torch.device) -> str:
