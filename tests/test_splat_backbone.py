@@ -209,6 +209,31 @@ def test_densification_clones_splits_and_prunes_within_the_bounds():
     assert (torch.sigmoid(model.opacities) >= settings.prune_opacity).all()
 
 
+def test_splats_cut_off_at_the_reach_are_split():
+    """A splat wider on screen than the rasteriser's reach is drawn cut off square: ``draw``
+    reports it, and the next densification splits it though nothing pulls on it."""
+    means, cov, values, opacities = few_splats(2)
+    cov = cov.clone()
+    cov[0] = torch.eye(3, dtype=cov.dtype) * 4.0  # metres wide, a few in front of the camera
+    info = {}
+    draw(means, cov, values, opacities, POSE, CAMERA, 2, info)
+    assert 0 in info["clipped"].tolist()
+    model = _rgb_model(2)
+    optimiser = _optimiser(model)
+    sum(p.sum() for p in model.parameters()).backward()
+    optimiser.step()
+    settings = SplatConfig(initial=2, max_splats=10, refine_start=0, refine_every=1,
+                           reset_every=1000)
+    info = {"means2d": torch.zeros(2, 2), "front": torch.arange(2), "drawn": torch.arange(2),
+            "clipped": torch.tensor([0])}
+    info["means2d"].grad = torch.zeros(2, 2)  # no pull at all
+    scale = model.scales[0].detach().clone()
+    Densification(settings, extent=1.0, stop=100).after_backward(model, optimiser, info, 1,
+                                                                  100, 100)
+    assert len(model.means) == 3  # splat 1 kept, splat 0 in two halves
+    assert torch.allclose(model.scales[1:], scale - math.log(1.6))
+
+
 def test_an_opacity_reset_caps_every_opacity():
     model = _rgb_model(6)
     optimiser = _optimiser(model)

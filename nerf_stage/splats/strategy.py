@@ -1,7 +1,9 @@
 """Adaptive density control of trained splats (3D Gaussian splatting, Sec. 5.2): splats
-whose screen-space position is pulled hard are cloned (small) or split in two (large),
-nearly transparent and oversized ones are removed, and every opacity is reset now and then
-so that splats in front of others have to earn their opacity again.
+whose screen-space position is pulled hard are cloned (small) or split in two (large), as
+are splats that the rasteriser cut off at its reach (too wide on screen: gsplat's
+screen-size refinement), nearly transparent and oversized ones are removed, and every
+opacity is reset now and then so that splats in front of others have to earn their opacity
+again.
 
 The training loop calls ``after_backward`` once a step; the strategy edits the model's
 parameters and the optimiser's moments together (new rows start with no moments).
@@ -38,6 +40,7 @@ class Densification:
     stop: int
     grad2d: torch.Tensor | None = field(default=None, repr=False)
     count: torch.Tensor | None = field(default=None, repr=False)
+    clipped: torch.Tensor | None = field(default=None, repr=False)
 
     def after_backward(self, model, optimiser: torch.optim.Optimizer, info: dict, step: int,
                        width: int, height: int) -> None:
@@ -50,7 +53,7 @@ class Densification:
         if step > settings.refine_start and step % settings.refine_every == 0:
             self._grow(model, optimiser)
             self._prune(model, optimiser, oversized=step > settings.reset_every)
-            self.grad2d = self.count = None
+            self.grad2d = self.count = self.clipped = None
         if step % settings.reset_every == 0 and step > 0:
             self._reset_opacities(model, optimiser)
 
@@ -59,6 +62,9 @@ class Densification:
         if self.grad2d is None:
             self.grad2d = model.means.new_zeros(n)
             self.count = model.means.new_zeros(n)
+            self.clipped = torch.zeros(n, dtype=torch.bool, device=model.means.device)
+        if "clipped" in info:
+            self.clipped[info["clipped"]] = True
         means2d = info.get("means2d")
         if means2d is None or means2d.grad is None:
             return
@@ -73,10 +79,11 @@ class Densification:
         mean = self.grad2d / self.count.clamp(min=1)
         high = mean > settings.grow_grad2d
         room = settings.max_splats - len(model.means)
-        if room <= 0 or not high.any():
+        if room <= 0 or not (high | self.clipped).any():
             return
         small = torch.exp(model.scales).max(1).values <= settings.grow_scale * self.extent
-        clone, split = high & small, high & ~small
+        clone, split = high & small & ~self.clipped, (high & ~small) | self.clipped
+        high = high | self.clipped
         wanted = int(clone.sum() + split.sum())  # each adds one splat
         if wanted > room:  # the strongest gradients first
             keep = torch.zeros_like(high)
