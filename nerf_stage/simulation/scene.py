@@ -38,7 +38,19 @@ from palette_core.io import load_image
 
 BUILTIN_SCENES = ("cornell-box", "still-life", "room-corner", "marbles", "open-field",
                   "forward-shelf", "clay-twins")
-OBJECT_TYPES = ("sphere", "quad", "box", "cylinder", "mesh")
+#: The primitives of ``objects[]``: each type's fields and their kinds (``_Fields``), the
+#: one table a new primitive's parsing takes (geometry.py and pathtracer.py draw it).
+OBJECT_FIELDS = {
+    "sphere": {"center": "vector", "radius": "positive"},
+    "quad": {"corner": "vector", "edge1": "vector", "edge2": "vector"},
+    "box": {"center": "vector", "size": "vector", "rotate_y": "number"},
+    "cylinder": {"base": "vector", "axis": "vector", "radius": "positive", "height": "positive",
+                 "caps": "bool"},
+    "mesh": {"path": "path", "scale": "positive", "translate": "vector", "rotate_y": "number"},
+}
+OBJECT_TYPES = tuple(OBJECT_FIELDS)
+_OPTIONAL = {"rotate_y": 0.0, "axis": [0.0, 1.0, 0.0], "caps": True, "scale": 1.0,
+             "translate": [0.0, 0.0, 0.0]}
 LIGHT_TYPES = ("area", "point")
 RIGS = ("orbit", "hemisphere", "front-arc")
 SPLITS = ("train", "val", "test")
@@ -303,22 +315,10 @@ def _load_texture(reader: _Fields, spec, where: str, root: Path) -> np.ndarray:
         raise InputError(f"scene {reader.scene}: field {where!r}: {exc}") from None
 
 
-_OBJECT_FIELDS = {
-    "sphere": {"center": "vector", "radius": "positive"},
-    "quad": {"corner": "vector", "edge1": "vector", "edge2": "vector"},
-    "box": {"center": "vector", "size": "vector", "rotate_y": "number"},
-    "cylinder": {"base": "vector", "axis": "vector", "radius": "positive", "height": "positive",
-                 "caps": "bool"},
-    "mesh": {"path": "path", "scale": "positive", "translate": "vector", "rotate_y": "number"},
-}
-_OPTIONAL = {"rotate_y": 0.0, "axis": [0.0, 1.0, 0.0], "caps": True, "scale": 1.0,
-             "translate": [0.0, 0.0, 0.0]}
-
-
 def _parse_object(reader: _Fields, obj, where: str, materials: list[str], root: Path) -> dict:
     obj = reader.table(obj, where)
     kind = reader.choice(obj.get("type"), f"{where}.type", OBJECT_TYPES)
-    fields = _OBJECT_FIELDS[kind]
+    fields = OBJECT_FIELDS[kind]
     reader.only(obj, where, ("type", "material", *fields))
     parsed = {"type": kind, "material": materials.index(
         reader.choice(obj.get("material"), f"{where}.material", materials))}
