@@ -13,6 +13,7 @@ from .errors import InputError
 from .folders import inside
 from .outputs import atomic_outputs, check_writable, save_image
 from .selection import LocalEdit, recolor_local
+from .sources import VIDEO_CONTAINERS
 from .stack import WeightStack, video_of
 
 
@@ -67,13 +68,7 @@ def recolor_stack(stack: WeightStack, palette: np.ndarray, folder: str | os.Path
     return targets
 
 
-#: Encoders for each video container, best first, with their options: H.264 (x264
-#: ``veryfast``, CRF 18) where the container holds it, VP9 for WebM, MPEG-4 Part 2 as the
-#: fallback of every container that can hold it.
-VIDEO_CODECS = {
-    ".mp4": ("libx264", "mpeg4"), ".m4v": ("libx264", "mpeg4"), ".mov": ("libx264", "mpeg4"),
-    ".mkv": ("libx264", "mpeg4"), ".avi": ("mpeg4", "mjpeg"), ".webm": ("libvpx-vp9", "libvpx"),
-}
+#: Options of the encoders in ``sources.VIDEO_CONTAINERS`` (x264 ``veryfast``, CRF 18).
 _CODEC_OPTIONS = {"libx264": {"preset": "veryfast", "crf": "18"},
                   "libvpx-vp9": {"crf": "18", "b": "0", "deadline": "realtime"}}
 
@@ -89,10 +84,10 @@ def video_codec(path: str | os.PathLike) -> str:
     import av
 
     suffix = Path(path).suffix.lower()
-    codec = next((c for c in VIDEO_CODECS.get(suffix, ()) if c in av.codecs_available), None)
+    codec = next((c for c in VIDEO_CONTAINERS.get(suffix, ()) if c in av.codecs_available), None)
     if codec is None:
         raise InputError(f"cannot write video {path}: no encoder for {suffix or 'it'} "
-                         f"(containers: {', '.join(VIDEO_CODECS)})")
+                         f"(containers: {', '.join(VIDEO_CONTAINERS)})")
     return codec
 
 

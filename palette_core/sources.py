@@ -21,7 +21,15 @@ from .errors import InputError
 from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, find_images, load_image, open_image
 from .stack import MAX_FPS, frame_name
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
+#: The video containers read as sources (anything PyAV opens) and written back by
+#: ``recolor.write_video``: each suffix with its encoders, best first (H.264 where the
+#: container holds it, VP9 for WebM, MPEG-4 Part 2 as the fallback). A new container is
+#: one entry here.
+VIDEO_CONTAINERS = {
+    ".mp4": ("libx264", "mpeg4"), ".m4v": ("libx264", "mpeg4"), ".mov": ("libx264", "mpeg4"),
+    ".mkv": ("libx264", "mpeg4"), ".avi": ("mpeg4", "mjpeg"), ".webm": ("libvpx-vp9", "libvpx"),
+}
+VIDEO_SUFFIXES = tuple(VIDEO_CONTAINERS)
 
 
 @dataclass(frozen=True)
