@@ -174,6 +174,10 @@ class SplatConfig:
     """Iterations between densifications."""
     reset_every: int = 3000
     """Iterations between resets of every splat's opacity to twice ``prune_opacity``."""
+    schedule_iters: int = 0
+    """The RGB stage's length that ``refine_start``, ``refine_every`` and ``reset_every`` are
+    given for: a shorter stage scales them down in proportion (gsplat's ``steps_scaler``;
+    3D Gaussian splatting's are for 30,000); 0 takes them as given."""
     grow_grad2d: float = 2e-4
     """Mean screen-space gradient (normalised image units) above which a splat is cloned
     (small) or split (large)."""
@@ -205,7 +209,7 @@ class SplatConfig:
         integers(self, 1, MAX_SPLATS, "initial", "max_splats")
         integers(self, 0, 3, "sh_degree")
         integers(self, 1, MAX_ITERS, "sh_every", "refine_every", "reset_every")
-        integers(self, 0, MAX_ITERS, "refine_start")
+        integers(self, 0, MAX_ITERS, "refine_start", "schedule_iters")
         integers(self, 1, 4096, "reach")
         integers(self, 0, 1 << 16, "patch")
         if self.initial > self.max_splats:

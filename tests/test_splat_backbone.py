@@ -195,8 +195,8 @@ def test_densification_clones_splits_and_prunes_within_the_bounds():
     means, scales = model.means.detach().clone(), model.scales.detach().clone()
     info = {"means2d": torch.zeros(10, 2), "front": torch.arange(10), "drawn": torch.arange(10)}
     info["means2d"].grad = torch.arange(1.0, 11.0)[:, None].repeat(1, 2) * 1e-3
-    Densification(settings, extent=1.0, stop=100).after_backward(model, optimiser, info, 1,
-                                                                  100, 100)
+    control = Densification.for_stage(settings, 1.0, 200)
+    control.after_backward(model, optimiser, info, 1, 100, 100)
     assert len(model.means) == 12  # 6 untouched, 2 + 2 clones, 2 halves of splat 8
     assert torch.equal(model.means[:8], means[:8]) and torch.equal(model.means[8:10], means[6:8])
     assert torch.allclose(model.scales[10:], scales[8] - math.log(1.6))
@@ -228,17 +228,29 @@ def test_splats_cut_off_at_the_reach_are_split():
             "clipped": torch.tensor([0])}
     info["means2d"].grad = torch.zeros(2, 2)  # no pull at all
     scale = model.scales[0].detach().clone()
-    Densification(settings, extent=1.0, stop=100).after_backward(model, optimiser, info, 1,
-                                                                  100, 100)
+    control = Densification.for_stage(settings, 1.0, 200)
+    control.after_backward(model, optimiser, info, 1, 100, 100)
     assert len(model.means) == 3  # splat 1 kept, splat 0 in two halves
     assert torch.allclose(model.scales[1:], scale - math.log(1.6))
+
+
+def test_a_short_stage_scales_the_densification_schedule_down():
+    """``schedule_iters``: 3D Gaussian splatting's schedule (for 30,000 iterations) in
+    proportion for a stage of 300; as given without it, or for a longer stage."""
+    settings = SplatConfig(schedule_iters=30_000)
+    short = Densification.for_stage(settings, 1.0, 300)
+    assert (short.start, short.every, short.reset, short.stop) == (5, 1, 30, 150)
+    given = Densification.for_stage(SplatConfig(), 1.0, 300)
+    assert (given.start, given.every, given.reset) == (500, 100, 3000)
+    long = Densification.for_stage(settings, 1.0, 60_000)
+    assert (long.start, long.every, long.reset) == (500, 100, 3000)
 
 
 def test_an_opacity_reset_caps_every_opacity():
     model = _rgb_model(6)
     optimiser = _optimiser(model)
     settings = SplatConfig(initial=4, max_splats=10, reset_every=5, refine_start=100)
-    Densification(settings, 1.0, 100).after_backward(model, optimiser, {}, 5, 10, 10)
+    Densification.for_stage(settings, 1.0, 200).after_backward(model, optimiser, {}, 5, 10, 10)
     assert torch.sigmoid(model.opacities).max() <= 2 * settings.prune_opacity + 1e-6
 
 

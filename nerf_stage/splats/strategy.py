@@ -32,29 +32,43 @@ SPLIT_SHRINK = 1.6  # a split splat's two halves are this many times smaller (3D
 @dataclass
 class Densification:
     """The control's settings, the cameras' ``extent`` (normalised units), the stage's
-    last densifying iteration ``stop``, and the screen-space gradients gathered since the
-    last densification."""
+    last densifying iteration ``stop``, the schedule (``start``, ``every``, ``reset``:
+    ``for_stage``) and the screen-space gradients gathered since the last densification."""
 
     settings: SplatConfig
     extent: float
     stop: int
+    start: int
+    every: int
+    reset: int
     grad2d: torch.Tensor | None = field(default=None, repr=False)
     count: torch.Tensor | None = field(default=None, repr=False)
     clipped: torch.Tensor | None = field(default=None, repr=False)
+
+    @classmethod
+    def for_stage(cls, settings: SplatConfig, extent: float, iterations: int) -> Densification:
+        """The control of an RGB stage of ``iterations``: densifying until ``refine_stop`` of
+        it, on the settings' schedule, scaled down to a stage shorter than
+        ``schedule_iters``."""
+        scale = (min(1.0, iterations / settings.schedule_iters) if settings.schedule_iters
+                 else 1.0)
+        return cls(settings, extent, int(settings.refine_stop * iterations),
+                   round(settings.refine_start * scale),
+                   max(1, round(settings.refine_every * scale)),
+                   max(1, round(settings.reset_every * scale)))
 
     def after_backward(self, model, optimiser: torch.optim.Optimizer, info: dict, step: int,
                        width: int, height: int) -> None:
         """Gather the gradients of step ``step`` (``rasterise.draw``'s ``info`` of a view of
         ``width`` x ``height``), then densify, prune and reset as the schedule says."""
-        settings = self.settings
         if step >= self.stop:
             return
         self._gather(model, info, width, height)
-        if step > settings.refine_start and step % settings.refine_every == 0:
+        if step > self.start and step % self.every == 0:
             self._grow(model, optimiser)
-            self._prune(model, optimiser, oversized=step > settings.reset_every)
+            self._prune(model, optimiser, oversized=step > self.reset)
             self.grad2d = self.count = self.clipped = None
-        if step % settings.reset_every == 0 and step > 0:
+        if step % self.reset == 0 and step > 0:
             self._reset_opacities(model, optimiser)
 
     def _gather(self, model, info: dict, width: int, height: int) -> None:
