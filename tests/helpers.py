@@ -48,3 +48,13 @@ def png_header_only(path, width, height):
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
                      + chunk(b"IDAT", zlib.compress(b"\x00" * 16)) + chunk(b"IEND", b""))
     return path
+
+
+PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.95, 0.9, 0.2]])
+
+
+def tiny_stack(path, rng, n=3):
+    """A weight stack of ``n`` small random images over ``PALETTE``, written to ``path``."""
+    weights = [rng.dirichlet(np.ones(4), size=(6 + i, 8)).astype(np.float32) for i in range(n)]
+    write_stack(WeightStack(PALETTE, weights, [f"p{i}.png" for i in range(n)], "mvc"), path)
+    return path

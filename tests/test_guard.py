@@ -11,7 +11,7 @@ pytest.importorskip("viser")
 from studio.app import Studio  # noqa: E402
 from studio.photos import PhotoTarget  # noqa: E402
 
-from .test_studio import tiny_stack  # noqa: E402
+from .helpers import tiny_stack  # noqa: E402
 
 
 def test_the_private_viser_module_the_guard_wraps_is_still_there():

@@ -1,6 +1,5 @@
 """palette-studio without a browser: the editing state, both targets, exports, bad input."""
 
-import json
 import socket
 
 import numpy as np
@@ -8,96 +7,19 @@ import pytest
 
 pytest.importorskip("viser")
 
-from harmonize import harmonize_palette, palette_shares  # noqa: E402
 from palette_core.basis import weights_to_rgb  # noqa: E402
 from palette_core.cli.recolor import main as recolor  # noqa: E402
 from palette_core.errors import InputError, OutputExists  # noqa: E402
 from palette_core.palette_file import read_palette_json, write_palette_json  # noqa: E402
 from palette_core.selection import recolor_local  # noqa: E402
-from palette_core.stack import WeightStack, write_stack  # noqa: E402
-from studio import PaletteEditor  # noqa: E402
+from palette_core.stack import WeightStack  # noqa: E402
 from studio.app import Studio  # noqa: E402
 from studio.cli import main as studio_main  # noqa: E402
 from studio.drawing import Drawing  # noqa: E402
 from studio.photos import PhotoTarget, downsample  # noqa: E402
 from studio.pictures import letterbox, to_bytes  # noqa: E402
 
-from .helpers import expect_error  # noqa: E402
-
-PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.95, 0.9, 0.2]])
-
-
-def tiny_stack(path, rng, n=3):
-    weights = [rng.dirichlet(np.ones(4), size=(6 + i, 8)).astype(np.float32) for i in range(n)]
-    write_stack(WeightStack(PALETTE, weights, [f"p{i}.png" for i in range(n)], "mvc"), path)
-    return path
-
-
-def test_editor_edits_undo_reset():
-    editor = PaletteEditor(PALETTE, lambda: np.full(4, 0.25))
-    assert not editor.can_undo and not editor.undo()
-    assert editor.set_colour(1, [0, 0, 0]) and not editor.set_colour(1, [0, 0, 0])
-    editor.set_colour(2, [1, 1, 1])
-    assert editor.palette[1].tolist() == [0, 0, 0] and editor.palette[2].tolist() == [1, 1, 1]
-    assert editor.undo() and editor.palette[2].tolist() == PALETTE[2].tolist()
-    assert editor.reset() and np.array_equal(editor.palette, PALETTE)
-    assert editor.undo() and editor.palette[1].tolist() == [0, 0, 0]  # reset is undoable
-    with pytest.raises(InputError):
-        editor.set_colour(4, [0, 0, 0])
-
-
-def test_editor_harmonises_like_the_library(tmp_path, rng):
-    stack_path = tiny_stack(tmp_path / "w.npz", rng)
-    target = PhotoTarget.open(stack_path)
-    editor = PaletteEditor(target.palette, target.shares)
-    name = editor.harmonize("best", 0.5)
-    expected = harmonize_palette(PALETTE, palette_shares(target.stack), "best", 0.5)
-    assert name == expected.fit.template.name
-    assert np.allclose(editor.palette, expected.palette)
-    with pytest.raises(InputError):
-        editor.harmonize("no-such-template")
-
-
-def test_editor_saves_the_cli_format_and_asks_before_replacing(tmp_path):
-    editor = PaletteEditor(PALETTE, lambda: np.full(4, 0.25))
-    editor.set_colour(0, [0, 0, 1])
-    path = tmp_path / "edit.json"
-    editor.save(path)
-    assert np.array_equal(read_palette_json(path, k=4), editor.palette)
-    editor.set_colour(0, [1, 1, 1])
-    with pytest.raises(OutputExists):
-        editor.save(path)
-    assert read_palette_json(path)[0].tolist() == [0, 0, 1]  # kept
-    editor.save(path, force=True)
-    assert read_palette_json(path)[0].tolist() == [1, 1, 1]
-    with pytest.raises(InputError, match=".json"):
-        editor.save(tmp_path / "edit.txt")
-
-
-def test_a_hand_edited_hex_code_wins_over_its_exact_colour(tmp_path):
-    path = tmp_path / "p.json"
-    write_palette_json(path, PALETTE)
-    data = json.loads(path.read_text())
-    data["palette"][1] = "#00ff00"
-    path.write_text(json.dumps(data))
-    read = read_palette_json(path)
-    assert read[1].tolist() == [0, 1, 0]
-    assert np.array_equal(np.delete(read, 1, 0), np.delete(PALETTE, 1, 0))  # exact
-
-
-def test_what_the_studio_exports_is_what_palette_recolor_makes_of_its_palette(tmp_path, rng):
-    """Harmonised colours are off the 8-bit grid: the saved file keeps them exactly, so the
-    command line recolours to the same bytes."""
-    target = PhotoTarget.open(tiny_stack(tmp_path / "w.npz", rng))
-    editor = PaletteEditor(target.palette, target.shares)
-    editor.harmonize("triad")
-    assert not np.array_equal(np.round(editor.palette * 255) / 255, editor.palette)
-    editor.save(tmp_path / "edit.json")
-    exported = target.export(tmp_path / "studio", editor.palette)
-    assert recolor([str(tmp_path / "w.npz"), "--palette", str(tmp_path / "edit.json"), "-o",
-                    str(tmp_path / "cli")]) == 0
-    for path in exported:
-        assert path.read_bytes() == (tmp_path / "cli" / path.name).read_bytes()
+from .helpers import PALETTE, expect_error, tiny_stack  # noqa: E402
 
 
 def test_photo_views_recolour_the_stack(tmp_path, rng):
@@ -231,54 +153,6 @@ def test_cli_bad_input(tmp_path, rng, capsys):
     expect_error(studio_main, [str(stack), "--no-browser", "--port", "70000"], "--port", capsys)
 
 
-# --- scene mode ------------------------------------------------------------------------------
-def test_scene_views_are_cached_and_recoloured_without_the_network(scene_run, monkeypatch):
-    from studio.scene import SceneTarget
-
-    target = SceneTarget.open(scene_run)
-    camera = target.intrinsics(1.5, 12)
-    assert (camera.width, camera.height) == (18, 12)
-    pose = target.home_pose()
-    first = target.render(pose, camera)
-    assert np.isclose(target.shares().sum(), 1)
-    assert first.weights.shape[1:3] == (12, 18)
-    calls = []
-    monkeypatch.setattr(target.run, "render", lambda *a, **k: calls.append(a))
-    again = target.render(pose.copy(), camera)
-    assert again is first and not calls
-    edited = target.palette[::-1]
-    image = again.recolor(edited)[0]
-    expected = weights_to_rgb(first.weights[0], edited) + (1 - first.opacity[0, ..., None]) * \
-        first.background
-    assert np.allclose(image, np.clip(expected, 0, 1))
-
-
-def test_scene_turntable_and_splat_exports(scene_run, tmp_path):
-    import trimesh
-
-    from nerf_stage.edit.regions import Region
-    from nerf_stage.splats import SH_C0
-    from studio.scene import SceneTarget
-
-    target = SceneTarget.open(scene_run)
-    gif = tmp_path / "turn.gif"
-    args = (target.palette, target.home_pose(), target.intrinsics(1.0, 8))
-    assert target.export(gif, *args, views=3) == [gif]
-    from PIL import Image
-
-    assert Image.open(gif).n_frames == 3
-    with pytest.raises(OutputExists):
-        target.export(gif, *args, views=3)
-    with pytest.raises(InputError, match=".gif"):
-        target.export(tmp_path / "turn.png", *args, views=3)
-    ply, edited = tmp_path / "scene.ply", target.palette[::-1]
-    nowhere = Region("box", (1e3, 1e3, 1e3), (1.0, 1.0, 1.0))  # the edit reaches no splat
-    assert target.export(ply, edited, *args[1:], regions=[nowhere]) == [ply]
-    table = trimesh.load(ply).metadata["_ply_raw"]["vertex"]["data"]
-    colours = np.stack([table[f"f_dc_{i}"] for i in range(3)], 1) * SH_C0 + 0.5
-    assert np.allclose(colours, target.splats.colours(), atol=1e-5)
-
-
 def test_a_hundred_images_open_without_reading_them(tmp_path, rng):
     """Only the image on screen and the thumbnails beside it are read."""
     from studio.photo_view import STRIP
@@ -333,33 +207,3 @@ def test_the_url_is_the_first_line_and_a_signal_stops_it(tmp_path, rng):
         _, err = process.communicate(timeout=30)
     assert process.returncode == 128 + signal.SIGTERM
     assert "Traceback" not in err
-
-
-def test_scene_mode_draws_splats_and_recolours_them(scene_run, monkeypatch):
-    from nerf_stage import splats as splat_module
-    from studio.scene import SceneTarget
-
-    target = SceneTarget.open(scene_run, refine_steps=5)
-    assert target.splats is not None and (scene_run / splat_module.SPLAT_CACHE).is_file()
-    monkeypatch.setattr(splat_module, "bake_run", lambda *a, **k: pytest.fail("baked again"))
-    again = SceneTarget.open(scene_run)  # the kept bake of the same run
-    assert np.array_equal(again.splats.centres, target.splats.centres)
-    run_pose = target.run.dataset().poses[0]
-    assert np.array_equal(target.home_pose(), run_pose)  # the first training camera
-    studio = Studio(target, port=0)
-    try:
-        view = studio.view
-        assert view.splats_drawn
-        edited = target.palette[::-1].copy()
-        studio._apply(lambda: [studio.editor.set_colour(i, c) for i, c in enumerate(edited)])
-        assert np.allclose(view.splat_colours(), target.splats.colours(edited))
-        view.gizmo.position = tuple(target.splats.centres[0])
-        view.size.value = (1e-3, 1e-3, 1e-3)
-        view.local.value = True  # a box around one splat: only it takes the edit
-        colours = view.splat_colours()
-        assert np.allclose(colours[0], target.splats.colours(edited)[0])
-        assert np.allclose(colours[1:], target.splats.colours()[1:])
-        view.drawer.value = "network (on the server)"
-        assert not view.splats_drawn
-    finally:
-        studio.stop()
