@@ -1,7 +1,7 @@
 """Multi-view datasets: Blender and nerfstudio ``transforms`` files, COLMAP models, and
 weight stacks.
 
-Three layouts are read:
+Three layouts are read (``LAYOUTS``, in the order a folder is looked at):
 
 - Blender synthetic scenes: ``transforms_{train,val,test}.json`` with
   ``camera_angle_x`` and ``frames[]`` (``file_path`` without or with suffix,
@@ -95,7 +95,7 @@ class Dataset:
     alpha : (N, H, W) float32
     background : (3,) float64
     layout : str
-        ``blender``, ``nerfstudio`` or ``colmap``: the files it was read from.
+        The key in ``LAYOUTS`` of the files it was read from.
     frames_outside : bool
         Frames were allowed outside ``root`` (``load_dataset``).
     downscale : int

@@ -120,7 +120,6 @@ class Splats:
         return ~np.any([region.contains(self.centres) for region in regions], axis=0)
 
 
-
 def with_residual(weights: torch.Tensor, rest: torch.Tensor, basis: str) -> torch.Tensor:
     """(S, M) weights seen from one direction: the editable ``weights`` (S, M) plus the
     residual's values ``rest`` (S, M; summing to zero over the channels for the additive
@@ -174,7 +173,6 @@ def matrix_quaternions(r: np.ndarray) -> np.ndarray:
                               (m[:, 1, 2] + m[:, 2, 1]) / c, c / 4], 1)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     return q / np.linalg.norm(q, axis=1, keepdims=True)
-
 
 
 def write_splats(splats: Splats, path: str | os.PathLike) -> None:
