@@ -77,8 +77,9 @@ ITERATION_TIME = re.compile(r"^\s*(\d+) \(\S+%\)\s+(?:(\d+) m, )?(?:(\d+) s, )?(
                             re.MULTILINE)
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
 #: nerfacto's model builds an LPIPS metric whose AlexNet weights torchvision downloads; with
-#: no network here its venv gets this ``sitecustomize.py``, an LPIPS that returns NaN (a
-#: metric only: training and the renders are nerfacto's own).
+#: no network here its venv gets this module, ``no_lpips.py``, imported by a ``.pth`` file at
+#: every start (a ``sitecustomize.py`` would lose to a system one): an LPIPS that returns NaN
+#: (a metric only: training and the renders are nerfacto's own).
 NO_LPIPS = """import torch
 import torchmetrics.image.lpip as lpip
 
@@ -199,7 +200,10 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
         curve.append((run.record.log[-1]["seconds"], scores["psnr"]))
     run = load_run(run_dir)
     memory = re.search(r"peak memory ([\d.]+) GB", (run_dir / "train.log").read_text())
-    return {"render": rendered(run, data, test), "curve": curve,
+    start = time.perf_counter()  # warm: the snapshots were rendered just before
+    render = rendered(run, data, test)
+    fps = len(test) / (time.perf_counter() - start)
+    return {"render": render, "curve": curve, "render_fps": fps,
             "iterations": len(run.record.log), "seconds": run.record.log[-1]["seconds"],
             "peak_gb": float(memory.group(1)) if memory else None}
 
@@ -268,8 +272,9 @@ def nerfacto_venv(venv: Path) -> Path:
         for package in (NERFSTUDIO[:2], NERFSTUDIO[2:]):  # torch first, as pinned
             subprocess.run([venv / "bin" / "pip", "install", "-q", *package], check=True)
     site = next(venv.glob("lib/python*/site-packages"))
-    if not (site / "sitecustomize.py").is_file():
-        (site / "sitecustomize.py").write_text(NO_LPIPS)
+    if not (site / "no_lpips.pth").is_file():
+        (site / "no_lpips.py").write_text(NO_LPIPS)
+        (site / "no_lpips.pth").write_text("import no_lpips\n")
     return venv / "bin"
 
 
@@ -299,10 +304,12 @@ def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
 
 
 def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int):
-    """Run ``ns-train nerfacto`` for ``iterations``; its config file and the median seconds
-    of its iterations after the first (the times it logs of each)."""
-    device = [] if _has_cuda(bin_dir) else ["--machine.device-type", "cpu",
-                                            "--pipeline.model.implementation", "torch"]
+    """Run ``ns-train nerfacto`` (its PyTorch implementation, on CUDA where its torch has
+    it) for ``iterations``; its config file and the median seconds of its iterations after
+    the first (the times it logs of each)."""
+    device = ["--pipeline.model.implementation", "torch"]
+    if not _has_cuda(bin_dir):
+        device += ["--machine.device-type", "cpu"]
     output = _run([bin_dir / "ns-train", "nerfacto", "--output-dir", out,
                    "--max-num-iterations", str(iterations), "--vis", "tensorboard",
                    "--logging.steps-per-log", "1", "--logging.local-writer.max-log-size", "0",
@@ -405,7 +412,9 @@ def main() -> None:
             print(f"{name} {method}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f} "
                   f"on {len(truth)} held-out views at {result['size']}; "
                   f"{result['iterations']} iterations in {result['seconds']:.0f} s"
-                  + (f", peak {result['peak_gb']:.2f} GB" if result.get("peak_gb") else ""),
+                  + (f", peak {result['peak_gb']:.2f} GB" if result.get("peak_gb") else "")
+                  + (f", renders {result['render_fps']:.1f} views/s"
+                     if result.get("render_fps") else ""),
                   flush=True)
             args.out.mkdir(parents=True, exist_ok=True)
             results_path.write_text(json.dumps(results, indent=1))
