@@ -31,8 +31,8 @@ the median time of its iterations in a probe run. Its held-out views are rendere
 
     python benchmarks/bench_captures.py ROOT [--out benchmarks/out/captures]
         [--captures fox lund sceaux monstree] [--minutes 20] [--downscale 4]
-        [--methods palette rgb nerfacto] [--backbone grid|hash]
-        [--nerfacto-venv benchmarks/out/nerfacto-venv]
+        [--methods palette rgb nerfacto] [--backbone grid|hash|splats]
+        [--curve-points 10] [--nerfacto-venv benchmarks/out/nerfacto-venv]
 
 Writes ``OUT/results.json``, ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
 absolute error x4) and ``OUT/NAME-curve.png`` (held-out PSNR against training time: our
@@ -69,7 +69,6 @@ PROBE_ITERS = 40  # iterations of the probe that times our NeRF
 NERFACTO_PROBE_ITERS = 15  # and nerfacto, at several seconds an iteration on a CPU
 BUDGET_SLACK = 0.1  # a run may end this share of its wall-clock budget early
 HEADROOM = 1.5  # iterations planned beyond the probe's rate
-CURVE_POINTS = 10  # checkpoints of a run scored for its held-out PSNR against time
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 #: A step's line of ns-train's log: step, then the iteration's time ("4 s, 612.345 ms").
@@ -164,43 +163,47 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
     return out
 
 
-def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: float) -> dict:
+def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: float,
+         curve_points: int = 10) -> dict:
     """Train our NeRF (``backbone``) on ``data_dir`` within ``seconds``; its renders of the
     held-out views, iterations, training seconds, peak memory and held-out PSNR against
-    training time (``curve``: seconds and dB of about ``CURVE_POINTS`` checkpoints).
+    training time (``curve``: seconds and dB of about ``curve_points`` checkpoints; 0: the
+    end alone).
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget. The
     iterations, which set the learning-rate schedule, come from a probe run's rate (with
     ``HEADROOM``: iterations speed up as the occupancy grid prunes empty space); a run that
     ends more than ``BUDGET_SLACK`` early is trained once more with more iterations."""
     snapshots = run_dir.with_name(run_dir.name + "-snapshots")
+    log = run_dir.with_name(run_dir.name + ".log")  # nerf-stage train's output
     data = load_dataset(data_dir)
     test = data.indices("test")
     if not (run_dir / "checkpoint.pt").is_file():
         run_dir.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
             _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0)
-            log = load_run(Path(probe) / "run").record.log
-        total = HEADROOM * seconds * (len(log) - 1) / (log[-1]["seconds"] - log[0]["seconds"])
+            probed = load_run(Path(probe) / "run").record.log
+        total = HEADROOM * seconds * (len(probed) - 1) / (probed[-1]["seconds"]
+                                                          - probed[0]["seconds"])
         for _ in range(2):
             with Snapshots(run_dir / "checkpoint.pt", snapshots):
-                output = _train(data_dir, run_dir, strategy, backbone, total, seconds / 60,
-                                every=max(1, round(total / CURVE_POINTS)))
-            (run_dir / "train.log").write_text(output)
+                _train(data_dir, run_dir, strategy, backbone, total, seconds / 60,
+                       every=max(1, round(total / max(1, curve_points))), log=log)
             took = load_run(run_dir).record.log[-1]["seconds"]
             if took >= (1 - BUDGET_SLACK) * seconds:
                 break
             total *= seconds / took
     curve = []
-    for path in sorted(snapshots.glob("*.pt")):
+    for path in sorted(snapshots.glob("*.pt")) if curve_points else ():
         with tempfile.TemporaryDirectory(dir=snapshots) as folder:
             os.link(path, Path(folder) / "checkpoint.pt")
             run = load_run(folder)
         scores = image_scores(rendered(run, data, test), data.images[test])
         curve.append((run.record.log[-1]["seconds"], scores["psnr"]))
     run = load_run(run_dir)
-    memory = re.search(r"peak memory ([\d.]+) GB", (run_dir / "train.log").read_text())
-    start = time.perf_counter()  # warm: the snapshots were rendered just before
+    memory = re.search(r"peak memory ([\d.]+) GB", log.read_text() if log.is_file() else "")
+    rendered(run, data, test[:1])  # warm-up, so that the rate below is of renders alone
+    start = time.perf_counter()
     render = rendered(run, data, test)
     fps = len(test) / (time.perf_counter() - start)
     return {"render": render, "curve": curve, "render_fps": fps,
@@ -253,16 +256,17 @@ def _version(path: Path) -> tuple[int, int]:
 
 
 def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iterations: float,
-           minutes: float, every: int = 500) -> str:
+           minutes: float, every: int = 500, log: Path | None = None) -> str:
     """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them,
-    within ``minutes`` (0: no limit), with a checkpoint ``every`` so many iterations."""
+    within ``minutes`` (0: no limit), with a checkpoint ``every`` so many iterations; its
+    output (``_run``)."""
     total = max(2, round(iterations))
     pretrain = max(1, round(total * PRETRAIN_SHARE))
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--backbone", backbone,
                  "--pretrain-iters", str(pretrain), "--finetune-iters", str(total - pretrain),
                  "--minutes", str(minutes), "--checkpoint-every", str(every)],
-                f"train {strategy}")
+                f"train {strategy}", log)
 
 
 def nerfacto_venv(venv: Path) -> Path:
@@ -288,7 +292,8 @@ def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir) as probe:
             per_iter = _nerfacto_train(bin_dir, data_dir, Path(probe), NERFACTO_PROBE_ITERS)[1]
         iterations = max(2, int(seconds / per_iter))
-        config, per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "train", iterations)
+        config, per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "train", iterations,
+                                           run_dir / "train.log")
         renders = config.parent / "renders"  # beside the config ns-train just made
         _run([bin_dir / "ns-eval", "--load-config", config, "--output-path",
               run_dir / "eval.json", "--render-output-path", renders], "ns-eval",
@@ -303,10 +308,11 @@ def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
     return result
 
 
-def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int):
+def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int,
+                    log: Path | None = None):
     """Run ``ns-train nerfacto`` (its PyTorch implementation, on CUDA where its torch has
-    it) for ``iterations``; its config file and the median seconds of its iterations after
-    the first (the times it logs of each)."""
+    it) for ``iterations``, its output to ``log``; its config file and the median seconds of
+    its iterations after the first (the times it logs of each)."""
     device = ["--pipeline.model.implementation", "torch"]
     if not _has_cuda(bin_dir):
         device += ["--machine.device-type", "cpu"]
@@ -315,7 +321,7 @@ def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int):
                    "--logging.steps-per-log", "1", "--logging.local-writer.max-log-size", "0",
                    "--steps-per-save", str(iterations), "--viewer.quit-on-train-completion",
                    "True", *device, "nerfstudio-data", "--data", data_dir,
-                   "--downscale-factor", "1"], "ns-train")
+                   "--downscale-factor", "1"], "ns-train", log)
     times = [60 * float(m or 0) + float(s or 0) + float(ms) / 1000
              for step, m, s, ms in ITERATION_TIME.findall(output) if int(step) > 0]
     if not times:
@@ -330,15 +336,18 @@ def _has_cuda(bin_dir: Path) -> bool:
     return probe.stdout.strip() == "True"
 
 
-def _run(command: list, what: str, **env: str) -> str:
-    """Run ``command`` with ``env`` added; its output (stderr too), or exit with its last
-    lines."""
-    done = subprocess.run([str(c) for c in command], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONUNBUFFERED": "1", **env})
+def _run(command: list, what: str, log: Path | None = None, **env: str) -> str:
+    """Run ``command`` with ``env`` added, its output (stderr too) written to ``log`` while it
+    runs (a temporary file without one, so that a run stopped from outside leaves it); that
+    output, or exit with its last lines."""
+    with tempfile.TemporaryFile("w+") if log is None else open(log, "w+") as file:
+        done = subprocess.run([str(c) for c in command], stdout=file, stderr=subprocess.STDOUT,
+                              env={**os.environ, "PYTHONUNBUFFERED": "1", **env})
+        file.seek(0)
+        output = file.read()
     if done.returncode:
-        sys.exit(f"{what} failed:\n" + "\n".join((done.stdout + done.stderr)
-                                                   .splitlines()[-15:]))
-    return done.stdout + done.stderr
+        sys.exit(f"{what} failed:\n" + "\n".join(output.splitlines()[-15:]))
+    return output
 
 
 def curve_picture(methods: dict, title: str, path: Path) -> None:
@@ -371,6 +380,9 @@ def main() -> None:
     parser.add_argument("--backbone", default="grid", choices=list(BACKBONES),
                         help="our NeRFs' backbone (methods palette and rgb; results under "
                              "palette-BACKBONE and rgb-BACKBONE unless grid)")
+    parser.add_argument("--curve-points", type=int, default=10,
+                        help="checkpoints of each of our runs scored on the held-out views for "
+                             "the PSNR-against-time curve (0: the end alone)")
     parser.add_argument("--undistorted-beforehand", action="store_true",
                         help="benchmark NAME-undistorted beside each posed capture with a "
                              "lens: its photos undistorted by COLMAP, not by us")
@@ -402,7 +414,8 @@ def main() -> None:
                 if args.backbone != "grid":  # results and runs named by backbone too
                     method = f"{method}-{args.backbone}"
                 strategy = "two-stage" if method.startswith("palette") else "rgb"
-                result = ours(data_dir, folder / method, strategy, args.backbone, seconds)
+                result = ours(data_dir, folder / method, strategy, args.backbone, seconds,
+                              args.curve_points)
             render = result.pop("render")
             result.update(image_scores(render, truth), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",
