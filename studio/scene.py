@@ -24,7 +24,7 @@ from nerf_stage.data.cameras import Intrinsics, look_at, turntable_poses
 from nerf_stage.edit.editing import WeightRender, render_weights, write_gif
 from nerf_stage.edit.regions import Region
 from nerf_stage.fields import RGB
-from nerf_stage.splats import Splats, cached_bake, export_ply
+from nerf_stage.splats import WRITERS, Splats, cached_bake, export_splats
 from nerf_stage.train.run import RunBase, load_run
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
@@ -155,20 +155,21 @@ class SceneTarget:
     def export(self, path: str | os.PathLike, palette: np.ndarray, pose: np.ndarray,
                intrinsics: Intrinsics, views: int = 36, force: bool = False,
                regions: list[Region] = ()) -> list[Path]:
-        """A turntable GIF of ``views`` frames from ``pose``, or the splats as a 3D Gaussian
-        splatting PLY (``nerf_stage.splats.export_ply``), as the suffix of ``path`` says,
-        recoloured with ``palette`` (inside ``regions`` only, when given)."""
+        """A turntable GIF of ``views`` frames from ``pose``, or the splats as a PLY or an
+        SPZ (``nerf_stage.splats.export_splats``), as the suffix of ``path`` says, recoloured
+        with ``palette`` (inside ``regions`` only, when given)."""
         path = Path(path)
         suffix = path.suffix.lower()
-        if suffix not in (".gif", ".ply"):
-            raise InputError(f"export a turntable as .gif or the splats as .ply, got {path}")
-        if suffix == ".ply" and self.splats is None:
+        if suffix != ".gif" and suffix not in WRITERS:
+            raise InputError(f"export a turntable as .gif or the splats as "
+                             f"{' or '.join(WRITERS)}, got {path}")
+        if suffix in WRITERS and self.splats is None:
             raise InputError("this run has no splats to export (the studio opened it without "
                              "them): export a turntable (.gif)")
         if not 1 <= views <= MAX_TURNTABLE:
             raise InputError(f"a turntable has 1 to {MAX_TURNTABLE} views, got {views}")
-        if suffix == ".ply":
-            return [export_ply(self.splats, path, palette, regions, force)]
+        if suffix in WRITERS:
+            return [export_splats(self.splats, path, palette, regions, force)]
         check_writable([path], force)
         poses = turntable_poses(pose, self.centre, views)
         frames = np.concatenate([recoloured(self.render(p, intrinsics), palette, regions)

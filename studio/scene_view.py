@@ -31,7 +31,7 @@ SETTLE_S = 0.15  # the camera has stopped when it has not moved for this long
 class SceneView:
     """A trained run on the page of ``studio`` (an ``app.Studio``), one ``Viewport`` a tab."""
 
-    export_label, export_button = "turntable GIF or splats PLY", "export"
+    export_label, export_button = "turntable GIF, or splats PLY or SPZ", "export"
 
     def __init__(self, studio, target: SceneTarget):
         self.studio, self.target = studio, target

@@ -18,7 +18,7 @@ from nerf_stage.splats import read_splats  # noqa: E402
 from nerf_stage.splats.backbone import SplatModel  # noqa: E402
 from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
-from nerf_stage.splats.sh import sh_basis, sh_terms  # noqa: E402
+from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import Densification  # noqa: E402
 from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
@@ -402,6 +402,29 @@ def test_the_ply_of_a_splat_run_carries_its_view_dependence(splat_run, tmp_path)
     plain = ((raw >= 0).all(1) & (torch.as_tensor(splats.colours()) < 1).all(1)).numpy()
     assert plain.sum() >= 20
     assert np.allclose(viewer[plain], drawn.numpy()[plain], atol=1e-4)
+
+
+def test_the_spz_holds_the_ply_fields_to_its_precision(splat_run, tmp_path, capsys):
+    """SPZ (read back by gsply) keeps what the PLY writes to within its quantisation:
+    positions to 2^-12, colours and opacities to about a 255th, log scales to a 16th,
+    rotations up to sign; the spherical harmonics to a few bits."""
+    gsply = pytest.importorskip("gsply")
+    from nerf_stage.splats import splat_fields
+
+    run = load_run(splat_run)
+    fields = splat_fields(run.splats({}))
+    assert main(["export", str(splat_run), "-o", str(tmp_path / "s.spz")]) == 0
+    read = gsply.read_spz(tmp_path / "s.spz")
+    assert len(read) == len(fields["means"]) and read.shN.shape == fields["shN"].shape
+    assert np.abs(read.means - fields["means"]).max() <= 2.0 ** -12
+    assert np.abs((read.sh0 - fields["sh0"]) * SH_C0).max() < 0.01
+    opacity = [1 / (1 + np.exp(-o)) for o in (read.opacities, fields["opacities"])]
+    assert np.abs(opacity[0] - opacity[1]).max() < 0.01
+    assert np.abs(read.scales - fields["scales"]).max() <= 1 / 32 + 1e-6
+    assert np.abs(np.sum(read.quats * fields["quats"], 1)).min() > 0.99
+    assert np.abs(read.shN - fields["shN"]).max() < 0.1
+    expect_error(main, ["export", str(splat_run), "-o", str(tmp_path / "s.obj")],
+                 "as .ply or .spz", capsys)
 
 
 def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, tmp_path):

@@ -191,7 +191,8 @@ def test_bake_and_export_from_the_command_line(scene_run, cornell_run, tmp_path,
     capsys.readouterr()
     expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.ply")], "already exists",
                  capsys)
-    expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.obj")], "as .ply", capsys)
+    expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.obj")], "as .ply or .spz",
+                 capsys)
     expect_error(main, ["bake", str(scene_run), "-o", str(tmp_path / "x.npz"),
                         "--max-splats", "0"], "max splats", capsys)
     run = tmp_path / "run"  # by default the bake goes into the run, where export finds it

@@ -1,5 +1,5 @@
 """``nerf-stage bake`` and ``export``: a run as splats (``splats.bake_to``), splats as a
-PLY (``splats.export_ply``)."""
+PLY or an SPZ (``splats.export_splats``)."""
 
 from __future__ import annotations
 
@@ -30,16 +30,18 @@ def add(commands) -> None:
     bake.add_argument("--force", action="store_true", help="overwrite FILE")
     bake.set_defaults(run=run_bake)
     export = commands.add_parser(
-        "export", help="write recoloured splats as a 3D Gaussian splatting PLY",
-        description="Write the splats of a bake (nerf-stage bake), recoloured with a palette, "
-                    "as a binary PLY in the layout 3D Gaussian splatting viewers read.")
+        "export", help="write recoloured splats as a 3D Gaussian splatting PLY or SPZ",
+        description="Write the splats of a splat run or a bake (nerf-stage bake), recoloured "
+                    "with a palette, as a binary PLY in the layout 3D Gaussian splatting "
+                    "viewers read, or as Niantic's compressed SPZ (the spz extra), as the "
+                    "output's suffix says.")
     export.add_argument("bake", metavar="FILE.splat.npz|RUNDIR",
                         help=f"a bake, or a run folder: its {SPLAT_CACHE}, baked first when it "
                              "is missing or older than the run")
     export.add_argument("--palette", metavar="JSON", default=None,
                         help="palette file of the run's K colours (default: the run's own)")
-    export.add_argument("-o", "--output", required=True, metavar="FILE.ply")
-    export.add_argument("--force", action="store_true", help="overwrite FILE.ply")
+    export.add_argument("-o", "--output", required=True, metavar="FILE.ply|FILE.spz")
+    export.add_argument("--force", action="store_true", help="overwrite the output")
     export.set_defaults(run=run_export)
 
 
@@ -54,11 +56,11 @@ def run_bake(args) -> int:
 
 
 def run_export(args) -> int:
-    from ..splats import export_ply, splats_of
+    from ..splats import export_splats, splats_of
 
     splats = splats_of(args.bake)
     palette = (None if args.palette is None
                else read_palette_json(args.palette, k=len(splats.palette)))
-    output = export_ply(splats, args.output, palette, force=args.force)
+    output = export_splats(splats, args.output, palette, force=args.force)
     print(f"wrote {len(splats)} splats to {output}")
     return 0

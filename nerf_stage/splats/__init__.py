@@ -14,7 +14,7 @@ from .baking import (
     refine,
     splats_of,
 )
-from .export import export_ply, write_ply
+from .export import WRITERS, export_splats, splat_fields, write_ply, write_spz
 from .model import SPLAT_FORMAT, Splats, covariances, matrix_quaternions, read_splats, write_splats
 from .rasterise import draw, render_splats, splat_tensors
 from .sh import SH_C0
@@ -26,6 +26,7 @@ __all__ = [
     "SH_C0",
     "SPLAT_CACHE",
     "SPLAT_FORMAT",
+    "WRITERS",
     "Splats",
     "bake",
     "bake_run",
@@ -33,13 +34,15 @@ __all__ = [
     "cached_bake",
     "covariances",
     "draw",
-    "export_ply",
+    "export_splats",
     "matrix_quaternions",
     "read_splats",
     "refine",
     "render_splats",
     "splat_tensors",
     "splats_of",
+    "splat_fields",
     "write_ply",
     "write_splats",
+    "write_spz",
 ]
