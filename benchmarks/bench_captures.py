@@ -67,8 +67,7 @@ CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
 PROBE_ITERS = 40  # iterations of the probe that times our NeRF
 NERFACTO_PROBE_ITERS = 15  # and nerfacto, at several seconds an iteration on a CPU
-BUDGET_SLACK = 0.1  # a run may end this share of its wall-clock budget early
-HEADROOM = 1.5  # iterations planned beyond the probe's rate
+HEADROOM = 2.0  # iterations planned beyond the probe's rate
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 #: A step's line of ns-train's log: step, then the iteration's time ("4 s, 612.345 ms").
@@ -170,10 +169,11 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
     training time (``curve``: seconds and dB of about ``curve_points`` checkpoints; 0: the
     end alone).
 
-    ``nerf-stage train --minutes`` ends each stage at its share of the budget. The
-    iterations, which set the learning-rate schedule, come from a probe run's rate (with
-    ``HEADROOM``: iterations speed up as the occupancy grid prunes empty space); a run that
-    ends more than ``BUDGET_SLACK`` early is trained once more with more iterations."""
+    ``nerf-stage train --minutes`` ends each stage at its share of the budget, its learning
+    rates then decayed as at the stage's last iteration. The iterations come from the rate
+    of a probe run's second half (past the first iterations' warm-up), with ``HEADROOM``:
+    iterations speed up as the occupancy grid prunes empty space. A run whose iterations
+    end first reports the time it took."""
     snapshots = run_dir.with_name(run_dir.name + "-snapshots")
     log = run_dir.with_name(run_dir.name + ".log")  # nerf-stage train's output
     data = load_dataset(data_dir)
@@ -183,16 +183,12 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
             _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0)
             probed = load_run(Path(probe) / "run").record.log
+        probed = probed[len(probed) // 2:]
         total = HEADROOM * seconds * (len(probed) - 1) / (probed[-1]["seconds"]
                                                           - probed[0]["seconds"])
-        for _ in range(2):
-            with Snapshots(run_dir / "checkpoint.pt", snapshots):
-                _train(data_dir, run_dir, strategy, backbone, total, seconds / 60,
-                       every=max(1, round(total / max(1, curve_points))), log=log)
-            took = load_run(run_dir).record.log[-1]["seconds"]
-            if took >= (1 - BUDGET_SLACK) * seconds:
-                break
-            total *= seconds / took
+        with Snapshots(run_dir / "checkpoint.pt", snapshots):
+            _train(data_dir, run_dir, strategy, backbone, total, seconds / 60,
+                   every=max(1, round(total / max(1, curve_points))), log=log)
     curve = []
     for path in sorted(snapshots.glob("*.pt")) if curve_points else ():
         with tempfile.TemporaryDirectory(dir=snapshots) as folder:

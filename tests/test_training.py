@@ -216,11 +216,26 @@ def test_learning_rates_decay_to_lr_decay_over_each_stage():
     for it in range(6):
         if it in (0, 4):  # each stage starts with new optimisers
             optimiser = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=0.1)
-        trainer_module._decay_learning_rates([optimiser], config, it)
+        factor = config.lr_decay ** trainer_module.stage_progress(config, it, [])
+        trainer_module._decay_learning_rates([optimiser], factor)
         rates.append(optimiser.param_groups[0]["lr"])
     assert rates == pytest.approx([0.1, 0.1 * 0.25**0.25, 0.05, 0.1 * 0.25**0.75, 0.1, 0.05])
     with pytest.raises(InputError, match="lr_decay"):
         TrainConfig(lr_decay=0)
+
+
+def test_under_a_wall_clock_limit_a_stage_progresses_with_its_time_too():
+    """Two stages of 10 iterations in a minute: pretraining's share is 30 s; it ended by the
+    clock after 5 iterations (31 s), and fine-tuning has the 29 s left."""
+    config = tiny_config(pretrain_iters=10, finetune_iters=10, minutes=1.0)
+    log = [{"iteration": i, "seconds": 6.2 * i} for i in range(1, 6)]
+    progress = trainer_module.stage_progress
+    assert progress(config, 2, log[:1]) == pytest.approx(6.2 / 30)  # time ahead of 2 / 10
+    assert progress(config, 4, log[:1]) == pytest.approx(0.4)  # iterations ahead of time
+    log += [{"iteration": 11, "seconds": 38.25}, {"iteration": 12, "seconds": 45.5}]
+    assert progress(config, 12, log) == pytest.approx((45.5 - 31) / 29)
+    assert progress(config, 12, log + [{"iteration": 13, "seconds": 99.0}]) == 1.0
+    assert progress(replace(config, minutes=0.0), 12, log) == pytest.approx(0.2)
 
 
 def test_deferred_is_a_boolean():

@@ -59,7 +59,7 @@ from ..train.run import (
     run_fields,
     write_checkpoint,
 )
-from ..train.trainer import load_optimisers, next_iteration, training_targets
+from ..train.trainer import load_optimisers, next_iteration, stage_progress, training_targets
 from .model import Splats, covariances, with_residual
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
@@ -336,7 +336,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
             _start_palette(run, views, device)
             optimiser = _optimiser(run, extent)
         view = views[int(torch.randint(len(views), (1,), generator=generator))]
-        _set_rates(optimiser, config, extent, it)
+        _set_rates(optimiser, config, extent, it, log, last)
         view = _patch(view, settings.patch, generator)
         info = {}
         loss, psnr = _loss(run, view, terms, background, it, info)
@@ -482,9 +482,11 @@ def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:
     return torch.optim.Adam(groups, eps=1e-15)
 
 
-def _set_rates(optimiser, config: TrainConfig, extent: float, it: int) -> None:
-    """The centres' rate decays exponentially to a hundredth over the RGB stage."""
-    share = min(it / max(1, config.pretrain_iters), 1.0)
+def _set_rates(optimiser, config: TrainConfig, extent: float, it: int, log: list,
+               last: int) -> None:
+    """The centres' rate decays exponentially to a hundredth over the RGB stage
+    (``stage_progress``; the geometry is frozen after it)."""
+    share = stage_progress(config, it, log, last) if it < config.pretrain_iters else 1.0
     for group in optimiser.param_groups:
         if group["name"] == "means":
             group["lr"] = config.splats.means_lr * extent * 0.01 ** share

@@ -112,8 +112,9 @@ class TrainConfig:
     """Iterations between checkpoints."""
     minutes: float = 0.0
     """Wall-clock limit of training (0: none). Each stage stops at its share of it (two-stage
-    pretraining: P / (P + F) of it) or after its iterations, whichever comes first; the
-    iterations still set the learning-rate schedule. For comparing NeRFs at one budget."""
+    pretraining: P / (P + F) of it) or after its iterations, whichever comes first, and its
+    learning rates decay with its iterations or its time, whichever is further
+    (``trainer.stage_progress``). For comparing NeRFs at one budget."""
     grid: GridConfig = field(default_factory=GridConfig)
     """Settings of the ``grid`` backbone."""
     mlp: MLPConfig = field(default_factory=MLPConfig)

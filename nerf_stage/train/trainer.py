@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 import resource
 import time
+from bisect import bisect_right
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -157,7 +158,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             _start_finetune(run)
             _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
-        loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning)
+        loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning,
+                           log)
         log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
                     "loss": loss.item(), "psnr": psnr, "stage": str(run.field.kind)})
         after = next_iteration(config, it + 1, log[-1]["seconds"])
@@ -169,6 +171,28 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         it = after
     bar.close()
     return run
+
+
+def stage_progress(config: TrainConfig, it: int, log: list, last: int | None = None) -> float:
+    """How far iteration ``it`` is through its stage, in [0, 1]: the share of the stage's
+    iterations done (two-stage: pretraining, then fine-tuning up to ``last``, as
+    ``next_iteration`` has them) or, under ``config.minutes``, the share of the stage's time
+    spent by the run's ``log`` when that is more, so that a stage that the clock ends has
+    its learning rates decayed as far as one that its iterations end."""
+    last = config.total_iters if last is None else last
+    two_stage = config.strategy == Strategy.TWO_STAGE
+    pretraining = two_stage and it < config.pretrain_iters
+    start = config.pretrain_iters if two_stage and not pretraining else 0
+    end = config.pretrain_iters if pretraining else last
+    done = min((it - start) / max(1, end - start), 1.0)
+    if not config.minutes or not log:
+        return done
+    begin = 0.0  # fine-tuning begins when pretraining's last logged iteration ended
+    stage = bisect_right(log, start, key=lambda entry: entry["iteration"]) if start else 0
+    if stage:
+        begin = log[stage - 1]["seconds"]
+    until = 60 * config.minutes * end / last
+    return min(max(done, (log[-1]["seconds"] - begin) / max(until - begin, 1e-9)), 1.0)
 
 
 def next_iteration(config: TrainConfig, it: int, seconds: float,
@@ -213,7 +237,7 @@ def peak_memory(device: torch.device) -> str:
 
 
 def _step(run: Run, optimisers: list, rays: dict, terms, background, generator, it: int,
-          finetuning: bool) -> tuple[torch.Tensor, float]:
+          finetuning: bool, log: list) -> tuple[torch.Tensor, float]:
     """Iteration ``it``: refine the occupancy grid (while the density trains), set the
     learning rates, and take one optimiser step on a batch of pixels; its loss and PSNR."""
     config = run.config
@@ -221,7 +245,7 @@ def _step(run: Run, optimisers: list, rays: dict, terms, background, generator, 
         settings = run.field.settings
         run.occupancy.update_every_n_steps(it, run.field, generator,
                                            settings.occupancy_every, settings.warmup_iters)
-    _decay_learning_rates(optimisers, config, it)
+    _decay_learning_rates(optimisers, config.lr_decay ** stage_progress(config, it, log))
     batch = _pixel_batch(config, rays, generator)
     run.field.train()
     loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
@@ -267,7 +291,7 @@ def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weight
     space = "unbounded" if box.unbounded else "box"
     for it in tqdm(range(config.total_iters), desc=f"probe {space}", disable=not progress,
                    unit="it"):
-        _step(run, optimisers, rays, None, background, generator, it, False)
+        _step(run, optimisers, rays, None, background, generator, it, False, [])
     pixels = torch.randperm(len(rays["rgb"]), generator=generator, device=device)[:PROBE_PIXELS]
     with torch.no_grad():
         run.field.eval()
@@ -439,16 +463,10 @@ def load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
                          "take", fixes=[("force", "to start afresh")]) from None
 
 
-def _decay_learning_rates(optimisers: list, config: TrainConfig, it: int) -> None:
-    """Set the rates of iteration ``it``: each stage's decay exponentially from the rates its
-    optimisers started with (``initial_lr``, as torch's schedulers keep it) to
-    ``config.lr_decay`` times them at the stage's end."""
-    start, length = 0, config.total_iters
-    if config.strategy == Strategy.TWO_STAGE:
-        pretraining = it < config.pretrain_iters
-        start = 0 if pretraining else config.pretrain_iters
-        length = config.pretrain_iters if pretraining else config.finetune_iters
-    factor = config.lr_decay ** ((it - start) / length)
+def _decay_learning_rates(optimisers: list, factor: float) -> None:
+    """Set the rates to ``factor`` times those the optimisers started with (``initial_lr``,
+    as torch's schedulers keep it): each stage's decay exponentially to
+    ``config.lr_decay`` times them at its end (``lr_decay ** stage_progress``)."""
     for optimiser in optimisers:
         for group in optimiser.param_groups:
             group["lr"] = group.setdefault("initial_lr", group["lr"]) * factor
