@@ -307,8 +307,9 @@ def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
 def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int,
                     log: Path | None = None):
     """Run ``ns-train nerfacto`` (its PyTorch implementation, on CUDA where its torch has
-    it) for ``iterations``, its output to ``log``; its config file and the median seconds of
-    its iterations after the first (the times it logs of each)."""
+    it) for ``iterations``, its output to ``log``; its config file and the seconds an
+    iteration takes: the median of the second half of what it logs at each step (a running
+    mean over up to 20 steps; its first iterations are the slowest)."""
     device = ["--pipeline.model.implementation", "torch"]
     if not _has_cuda(bin_dir):
         device += ["--machine.device-type", "cpu"]
@@ -322,7 +323,7 @@ def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int,
              for step, m, s, ms in ITERATION_TIME.findall(output) if int(step) > 0]
     if not times:
         sys.exit(f"ns-train logged no iteration times:\n{output[-2000:]}")
-    return sorted(out.rglob("config.yml"))[-1], float(np.median(times))
+    return sorted(out.rglob("config.yml"))[-1], float(np.median(times[len(times) // 2:]))
 
 
 def _has_cuda(bin_dir: Path) -> bool:

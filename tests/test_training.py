@@ -259,3 +259,60 @@ def test_a_ray_bank_that_cannot_fit_is_refused_up_front():
     with pytest.raises(InputError, match="more than the"):
         _check_fits(huge, 1, torch.device("cpu"))
     _check_fits(np.zeros((2, 4, 4, 4), np.float32), 2, torch.device("cpu"))
+
+
+def test_sparse_points_give_the_depth_of_the_pixels_that_see_them():
+    """A camera at z = 3 looking down -z: a point at the centre is seen by the middle pixel
+    at distance 3 (normalised by the box's scale), the one straight behind it is hidden,
+    one behind the camera and one outside the view are not seen."""
+    from nerf_stage.render.scene_box import SceneBox
+    from nerf_stage.train.point_depth import point_targets
+
+    camera = Intrinsics(8, 8, 4.0, 4.0, 4.0, 4.0)
+    pose = np.eye(4)
+    pose[2, 3] = 3.0
+    points = np.array([[0.1, 0.1, 0.0], [0.1, 0.1, -1.0], [0.0, 0.0, 5.0], [9.0, 0.0, 0.0]])
+    box = SceneBox(np.zeros(3), np.full(3, 1.5))
+    pixels, targets = point_targets(points, pose[None], [camera], box)
+    assert pixels.tolist() == [3 * 8 + 4]  # row 3 (y up is row down), column 4
+    assert targets == pytest.approx([np.sqrt(0.02 + 9) / box.scale])
+    far = SceneBox(np.zeros(3), np.full(3, 0.5), unbounded=True)
+    beyond = np.array([[0.1, 0.1, -2.0]])  # past the box: the contracted parameter
+    pixels, targets = point_targets(beyond, np.stack([pose, pose]), [camera] * 2, far)
+    assert pixels.tolist() == [28, 64 + 28]
+    offset = beyond[0] - pose[:3, 3]
+    distance = np.linalg.norm(offset) / far.scale
+    bend = (-1 - pose[2, 3] / far.scale) / (offset[2] / np.linalg.norm(offset))  # z = -1 exit
+    assert distance > bend
+    assert targets == pytest.approx([2 * bend - bend**2 / distance] * 2, rel=1e-5)
+
+
+def test_the_depth_loss_is_zero_only_where_a_ray_ends_at_its_target():
+    ray, t = torch.tensor([0, 0, 1, 1]), torch.tensor([1.0, 2.0, 1.0, 2.0])
+    targets = torch.tensor([2.0, 2.0])
+    assert losses.depth_loss(ray, t, torch.tensor([0.0, 1.0, 0.0, 1.0]), targets) == 0
+    floater = losses.depth_loss(ray, t, torch.tensor([0.5, 0.5, 0.0, 1.0]), targets)
+    assert floater == pytest.approx(0.25)
+
+
+def test_a_depth_loss_run_trains_where_points_are_seen(cornell, tmp_path):
+    """With points on the scene's surfaces and ``depth_weight``, the density trains on their
+    depth too (another run than without); without points the setting changes nothing."""
+    from nerf_stage.data.points import Points
+
+    dataset = load_dataset(cornell)
+    rng = np.random.default_rng(0)
+    points = Points(rng.uniform(-1, 1, (200, 3)) * np.array([1, 1, 0.01]) - [0, 0, 0.9],
+                    np.zeros((200, 3), np.float32))
+    config = tiny_config(pretrain_iters=3, finetune_iters=1)
+    stack = read_stack(cornell / "weights.npz")
+
+    def density(data, settings, name):
+        run = trainer_module.train(settings, data, stack, tmp_path / name, progress=False,
+                                   device=torch.device("cpu"))
+        return torch.cat([p.detach().flatten() for p in run.field.density_parameters()])
+
+    plain = density(dataset, config, "plain")
+    assert torch.equal(plain, density(dataset, replace(config, depth_weight=1.0), "none"))
+    with_points = replace(dataset, points=points)
+    assert not torch.equal(plain, density(with_points, replace(config, depth_weight=1.0), "d"))

@@ -85,6 +85,10 @@ class TrainConfig:
     only (``space``): it gathers each ray's weight where the ray ends, against the floaters
     that views from one ring leave (docs/nerf.md, "Unbounded scenes"); box scenes do without
     it."""
+    depth_weight: float = 0.0
+    """Weight of the depth loss on the training pixels where the capture's sparse points are
+    seen (``point_depth``, ``losses.depth_loss``), while the density trains; 0: off, as for
+    captures without points."""
     near_gradient: float = 1.0
     """In unbounded scenes, gradients of samples nearer to the camera than this (normalised
     units: the box's half size) are scaled down by the square of their distance over it
@@ -129,7 +133,7 @@ class TrainConfig:
         self.strategy = member(Strategy, self.strategy, "strategy")
         self.space = member(Space, self.space, "space")
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
-                      "distortion_weight", "near_gradient", "minutes")
+                      "distortion_weight", "depth_weight", "near_gradient", "minutes")
         positive(self, "lr_decay")
         if not isinstance(self.appearance, bool):
             raise InputError(f"appearance must be true or false, got {self.appearance!r}")

@@ -46,6 +46,15 @@ def distortion_loss(ray: torch.Tensor, t: torch.Tensor, weight: torch.Tensor, st
     return (pairs + (weight ** 2).sum() * step / 3) / max(1, rays)
 
 
+def depth_loss(ray: torch.Tensor, t: torch.Tensor, weight: torch.Tensor,
+               targets: torch.Tensor) -> torch.Tensor:
+    """Mean over the (R,) rays with ``targets`` of sum_i w_i (t_i - target)^2, for the (P,)
+    samples at ``t`` with compositing weights w of rays ``ray`` (DS-NeRF's ray-termination
+    prior with a vanishing spread): every bit of a ray's weight away from where its sparse
+    point lies costs, floaters in front of it most."""
+    return (weight * (t - targets[ray]) ** 2).sum() / max(1, len(targets))
+
+
 def weight_loss(kind: str, values: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     """L2 of (R, M) premultiplied weights; transport weights are tone-mapped first
     (``fields.base.tone_map``), so that emitters do not drown the rest."""

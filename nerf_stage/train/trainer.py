@@ -41,8 +41,9 @@ from ..render.occupancy import OccupancyGrid
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 from .appearance import Appearance
 from .config import Space, Strategy, TrainConfig
-from .losses import distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
+from .losses import depth_loss, distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse
+from .point_depth import point_targets
 from .run import (
     CHECKPOINT,
     CONFIG,
@@ -64,6 +65,9 @@ PROBE_PIXELS = 16384
 PROBE_MARGIN = 6.0
 #: ``_fit_output`` starts a channel at its mean weight, or at this where it is smaller.
 MIN_START_WEIGHT = 1e-4
+#: Pixels with a sparse point's depth added to each batch while the density trains
+#: (``depth_weight``).
+DEPTH_PIXELS = 512
 
 
 @dataclass(frozen=True)
@@ -132,6 +136,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
     run.record.weights = weights_path
     _check_fits(weights, config.supersampling, device)
     rays = _ray_bank(run, dataset, train_ids, weights, device)
+    depth = _depth_targets(config, dataset, train_ids, run.box, device)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     optimiser_states = []
     if resume:
@@ -159,7 +164,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
         loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning,
-                           log)
+                           log, depth)
         log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
                     "loss": loss.item(), "psnr": psnr, "stage": str(run.field.kind)})
         after = next_iteration(config, it + 1, log[-1]["seconds"])
@@ -237,19 +242,24 @@ def peak_memory(device: torch.device) -> str:
 
 
 def _step(run: Run, optimisers: list, rays: dict, terms, background, generator, it: int,
-          finetuning: bool, log: list) -> tuple[torch.Tensor, float]:
+          finetuning: bool, log: list, depth: tuple | None = None) -> tuple[torch.Tensor, float]:
     """Iteration ``it``: refine the occupancy grid (while the density trains), set the
-    learning rates, and take one optimiser step on a batch of pixels; its loss and PSNR."""
+    learning rates, and take one optimiser step on a batch of pixels (and, while the density
+    trains, ``DEPTH_PIXELS`` of the ``depth`` targets' pixels); its loss and PSNR."""
     config = run.config
     if run.field.refines_occupancy and not finetuning:
         settings = run.field.settings
         run.occupancy.update_every_n_steps(it, run.field, generator,
                                            settings.occupancy_every, settings.warmup_iters)
     _decay_learning_rates(optimisers, config.lr_decay ** stage_progress(config, it, log))
-    batch = _pixel_batch(config, rays, generator)
+    batch, targets = _pixel_batch(config, rays, generator), None
+    if depth is not None and not finetuning:
+        pick = torch.randint(len(depth[0]), (DEPTH_PIXELS,), generator=generator,
+                             device=batch.device)
+        batch, targets = torch.cat([batch, depth[0][pick]]), depth[1][pick]
     run.field.train()
     loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
-                       background, generator)
+                       background, generator, targets)
     for optimiser in optimisers:
         optimiser.zero_grad(set_to_none=True)
     loss.backward()
@@ -299,13 +309,15 @@ def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weight
                      background, None)[1]
 
 
-def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Tensor, float]:
+def _loss(run: Run, rays: dict, terms, background, generator,
+          targets: torch.Tensor | None = None) -> tuple[torch.Tensor, float]:
     """Loss of one batch of rays, and the PSNR of its colours (through the weights).
 
     L2 on RGB while the output is RGB, else ``losses.weight_loss``; plus, while the density
     trains, ``opacity_weight`` x L2 of the opacity against alpha and ``sparsity_weight``
-    x ``losses.sparsity_loss`` and, in unbounded scenes, ``distortion_weight`` x
-    ``losses.distortion_loss``.
+    x ``losses.sparsity_loss``, in unbounded scenes ``distortion_weight`` x
+    ``losses.distortion_loss``, and ``depth_weight`` x ``losses.depth_loss`` of the batch's
+    last pixels against their depth ``targets``, where given.
     """
     values, acc, samples = run.render_pixels(rays["origins"], rays["directions"], generator)
     if run.field.kind == RGB:
@@ -323,6 +335,13 @@ def _loss(run: Run, rays: dict, terms, background, generator) -> tuple[torch.Ten
         if run.box.unbounded and run.config.distortion_weight:
             loss = loss + run.config.distortion_weight * distortion_loss(
                 samples.ray, samples.t, samples.weight, run.sampling.step or 0.0, len(acc))
+        if targets is not None:
+            n = run.config.supersampling ** 2  # rays a pixel
+            first = (len(acc) - len(targets)) * n
+            tail = samples.ray >= first
+            loss = loss + run.config.depth_weight * depth_loss(
+                samples.ray[tail] - first, samples.t[tail], samples.weight[tail],
+                targets.repeat_interleave(n))
     with torch.no_grad():
         mse = float(torch.mean((rgb.clamp(0, 1) - rays["rgb"]) ** 2))
     return loss, psnr_from_mse(max(mse, 1e-10))
@@ -367,6 +386,21 @@ def _ray_bank(run: Run, dataset: Dataset, train_ids, weights, device) -> dict:
             "alpha": flat(dataset.alpha[train_ids, ..., None])[:, 0],
             "image": torch.arange(len(train_ids), device=device).repeat_interleave(
                 dataset.alpha[0].size)}
+
+
+def _depth_targets(config: TrainConfig, dataset: Dataset, train_ids, box: SceneBox,
+                   device) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The training pixels where the capture's sparse points are seen and their rays'
+    targets (``point_depth.point_targets``), on ``device``; None without ``depth_weight``,
+    points or a pixel that sees one."""
+    if not config.depth_weight or dataset.points is None:
+        return None
+    pixels, targets = point_targets(dataset.points.positions, dataset.poses[train_ids],
+                                    dataset.cameras(train_ids), box)
+    if not len(pixels):
+        return None
+    return (torch.as_tensor(pixels, device=device),
+            torch.as_tensor(targets, dtype=torch.float32, device=device))
 
 
 def _check_fits(weights: np.ndarray, supersampling: int, device: torch.device) -> None:

@@ -1,0 +1,71 @@
+"""Where a capture's sparse points say its training rays end: the targets of a depth loss
+(DS-NeRF, Deng et al., CVPR 2022) against the floaters and misplaced walls that photos
+taken from few directions leave.
+
+A capture's points file holds no tracks (which photos saw a point), so a point counts as
+seen by a training view when it projects into the view in front of the camera and lies,
+within ``TOLERANCE``, as near as the nearest point projecting into its cell of ``CELL`` x
+``CELL`` pixels: points behind a nearer surface that has points of its own drop out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..data.cameras import Intrinsics
+from ..render.contraction import ray_interval
+from ..render.march import box_intersection
+from ..render.scene_box import SceneBox
+
+CELL = 4  # pixels a side of the cells in which only the nearest points count as seen
+TOLERANCE = 1.05  # a point counts as seen within this factor of its cell's nearest
+
+
+def point_targets(points: np.ndarray, poses: np.ndarray, cameras: list[Intrinsics],
+                  box: SceneBox) -> tuple[np.ndarray, np.ndarray]:
+    """The training pixels on which a sparse point is seen, and where their rays should end.
+
+    Parameters
+    ----------
+    points : (P, 3) world positions.
+    poses : (N, 4, 4) camera-to-world of the training views (OpenGL axes), all of one size.
+    cameras : N intrinsics.
+    box : the run's scene box.
+
+    Returns
+    -------
+    pixels : (Q,) int64 indices into the training pixels, view by view, row by row
+        (``trainer._ray_bank``'s order).
+    targets : (Q,) float32 the point's distance from the camera in the rays' marching
+        parameter (``march.ray_interval``: the normalised distance in a bounded box, the
+        contracted parameter beyond an unbounded scene's box).
+    """
+    pixels, distances, origins, directions = [], [], [], []
+    for view, (pose, camera) in enumerate(zip(poses, cameras)):
+        offset = points - pose[:3, 3]
+        local = offset @ pose[:3, :3]  # camera axes: x right, y up, looking along -z
+        depth = -local[:, 2]
+        x = camera.fx * local[:, 0] / np.where(depth > 0, depth, 1) + camera.cx
+        y = -camera.fy * local[:, 1] / np.where(depth > 0, depth, 1) + camera.cy
+        inside = (depth > 0) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+        column, row = x[inside].astype(np.int64), y[inside].astype(np.int64)
+        distance = np.linalg.norm(offset[inside], axis=1)
+        cell = (row // CELL) * (camera.width // CELL + 1) + column // CELL
+        nearest = np.full(cell.max(initial=0) + 1, np.inf)
+        np.minimum.at(nearest, cell, distance)
+        seen = distance <= TOLERANCE * nearest[cell]
+        pixels.append(view * camera.width * camera.height + row[seen] * camera.width
+                      + column[seen])
+        distances.append(distance[seen] / box.scale)
+        origins.append(np.broadcast_to((pose[:3, 3] - box.centre) / box.scale, (seen.sum(), 3)))
+        directions.append(offset[inside][seen] / distance[seen, None])
+    pixels, distances = np.concatenate(pixels), np.concatenate(distances)
+    if box.unbounded:  # beyond the box, the parameter of the contracted ray (disparity-like)
+        _, exits = box_intersection(torch.as_tensor(np.concatenate(origins)),
+                                    torch.as_tensor(np.concatenate(directions)),
+                                    torch.ones(3, dtype=torch.float64))
+        bend = ray_interval(exits)[2].numpy()
+        distances = np.where(distances <= bend, distances,
+                             2 * bend - bend ** 2 / np.maximum(distances, 1e-12))
+    return pixels, distances.astype(np.float32)
