@@ -85,15 +85,17 @@ class TrainConfig:
     only (``space``): it gathers each ray's weight where the ray ends, against the floaters
     that views from one ring leave (docs/nerf.md, "Unbounded scenes"); box scenes do without
     it."""
-    depth_weight: float = 0.0
+    depth_weight: float = 0.1
     """Weight of the depth loss on the training pixels where the capture's sparse points are
-    seen (``point_depth``, ``losses.depth_loss``), while the density trains; 0: off, as for
-    captures without points."""
-    near_gradient: float = 1.0
-    """In unbounded scenes, gradients of samples nearer to the camera than this (normalised
-    units: the box's half size) are scaled down by the square of their distance over it
-    (``rendering.scale_near_gradients``), against floaters in front of the cameras; 0: off.
-    Box scenes start their samples at the box, away from the cameras, and do without it."""
+    seen (``point_depth``, ``losses.depth_loss``), while the density trains, against
+    floaters and walls at the wrong depth (docs/real_photos.md); captures without points
+    train without it; 0: off."""
+    near_gradient: float = 2.0
+    """In unbounded scenes, gradients of samples nearer to the camera than this (in the
+    rays' marching parameter: box half sizes, contracted beyond the box's reach) are scaled
+    down by the square of their distance over it (``march.scale_near_gradients``), against
+    floaters in front of the cameras (docs/real_photos.md); 0: off. Box scenes start their
+    samples at the box, away from the cameras, and do without it."""
     rgb_weight: float = 1.0
     """Weight of the L2 loss of the colours through the weights (``weights @ basis``) against
     the images, added to the weights' own loss while the output is weights (0: the weights'
