@@ -2,9 +2,9 @@
 the section of ``TrainConfig`` of the same name) and where its ``Field`` lives, imported
 only when a run is built.
 
-Adding a backbone is one module in ``fields/`` with a ``Field`` subclass and one entry in
-``BACKBONES`` with its settings here (and the section in ``TrainConfig``;
-docs/architecture.md).
+Adding a backbone is one module in ``fields/`` with a ``Field`` subclass, and here its
+settings and one entry in ``BACKBONES``; ``TrainConfig`` makes its section and
+``nerf-stage train`` its flags from them (docs/architecture.md).
 """
 
 from __future__ import annotations

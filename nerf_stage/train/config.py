@@ -1,8 +1,8 @@
 """Training configuration: dataclasses saved as ``config.json`` beside the checkpoint.
 
-``TrainConfig`` holds the settings every backbone shares and one nested dataclass
-per backbone (``backbones.GridConfig``, ``backbones.MLPConfig``); ``nerf-stage train``
-makes one flag per field (``palette_core.cli.add_config_arguments``): ``--pretrain-iters``,
+``TrainConfig`` holds the settings every backbone shares and one nested dataclass per
+backbone, made from ``backbones.BACKBONES`` (``grid``: ``GridConfig``, ...);
+``nerf-stage train`` makes one flag per field (``palette_core.cli.add_config_arguments``): ``--pretrain-iters``,
 ``--grid-voxels``, ``--mlp-samples``, ... No torch here, so that the CLI can be
 built without the ``nerf`` extra.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from palette_core.errors import InputError
 
-from ..backbones import BACKBONES, Backbone, GridConfig, HashConfig, MLPConfig, SplatConfig
+from ..backbones import BACKBONES, Backbone
 from ..checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, member, positive
 
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
@@ -43,9 +43,20 @@ class Space(StrEnum):
     UNBOUNDED = "unbounded"
 
 
-@dataclass
+def _backbone_sections(cls: type) -> type:
+    """``cls`` as a dataclass with, after its own fields, one per backbone of ``BACKBONES``:
+    its settings, named as the backbone (``TrainConfig.grid.voxels``), so that a backbone's
+    settings live beside its table entry alone."""
+    for name, spec in BACKBONES.items():
+        cls.__annotations__[name] = spec.settings
+        setattr(cls, name, field(default_factory=spec.settings))
+    return dataclass(cls)
+
+
+@_backbone_sections
 class TrainConfig:
-    """How to train one weight NeRF (defaults suit the ``grid`` backbone on a CPU)."""
+    """How to train one weight NeRF (defaults suit the ``grid`` backbone on a CPU), with a
+    section of settings per backbone (``backbones.BACKBONES``)."""
 
     backbone: Backbone = Backbone.GRID
     """``grid`` (dense voxel grids, fast on CPUs), ``hash`` (a multi-resolution hash encoding:
@@ -121,15 +132,6 @@ class TrainConfig:
     pretraining: P / (P + F) of it) or after its iterations, whichever comes first, and its
     learning rates decay with its iterations or its time, whichever is further
     (``trainer.stage_progress``). For comparing NeRFs at one budget."""
-    grid: GridConfig = field(default_factory=GridConfig)
-    """Settings of the ``grid`` backbone."""
-    mlp: MLPConfig = field(default_factory=MLPConfig)
-    """Settings of the ``mlp`` backbone."""
-    hash: HashConfig = field(default_factory=HashConfig)
-    """Settings of the ``hash`` backbone."""
-    splats: SplatConfig = field(default_factory=SplatConfig)
-    """Settings of the ``splats`` backbone."""
-
     def __post_init__(self):
         self.backbone = member(Backbone, self.backbone, "backbone")
         self.strategy = member(Strategy, self.strategy, "strategy")
