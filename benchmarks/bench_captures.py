@@ -25,9 +25,11 @@ ratio) are set to fill the budget, and ``--minutes`` ends each stage at its shar
 (``ours``).
 nerfacto (PyTorch implementation, ``--machine.device-type cpu`` without CUDA) runs in its
 own virtual environment, ``--nerfacto-venv``, which this script creates when missing
-(PyPI's ``nerfstudio``; never a dependency of ours); its ``--max-num-iterations`` come from
-the median time of its iterations in a probe run. Its held-out views are rendered by
-``ns-eval`` into PNGs and scored here, by the same ``image_scores`` as ours.
+(PyPI's ``nerfstudio``; never a dependency of ours), and is stopped by the clock: its
+learning-rate schedules do not depend on its ``--max-num-iterations`` (they run over
+200,000 steps), so that its run ends, its checkpoint saved, at the first iteration after
+the budget. Its held-out views are rendered by ``ns-eval`` into PNGs and scored here, by
+the same ``image_scores`` as ours.
 
     python benchmarks/bench_captures.py ROOT [--out benchmarks/out/captures]
         [--captures fox lund sceaux monstree] [--minutes 20] [--downscale 4]
@@ -66,19 +68,23 @@ from nerf_stage.train.run import load_run
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
 PROBE_ITERS = 40  # iterations of the probe that times our NeRF
-NERFACTO_PROBE_ITERS = 15  # and nerfacto, at several seconds an iteration on a CPU
 HEADROOM = 2.0  # iterations planned beyond the probe's rate
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
-#: A step's line of ns-train's log: step, then the iteration's time ("4 s, 612.345 ms").
-ITERATION_TIME = re.compile(r"^\s*(\d+) \(\S+%\)\s+(?:(\d+) m, )?(?:(\d+) s, )?([\d.]+) ms",
-                            re.MULTILINE)
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
-#: nerfacto's model builds an LPIPS metric whose AlexNet weights torchvision downloads; with
-#: no network here its venv gets this module, ``no_lpips.py``, imported by a ``.pth`` file at
-#: every start (a ``sitecustomize.py`` would lose to a system one): an LPIPS that returns NaN
-#: (a metric only: training and the renders are nerfacto's own).
-NO_LPIPS = """import torch
+#: What nerfacto's venv imports at every start, through a ``.pth`` file (a
+#: ``sitecustomize.py`` would lose to a system one), as ``bench_hooks.py``:
+#: - nerfacto's model builds an LPIPS metric whose AlexNet weights torchvision downloads;
+#:   with no network here it gets one that returns NaN (a metric only);
+#: - with ``BENCH_SECONDS`` set, ns-train's trainer saves its checkpoint and ends at the
+#:   first iteration that starts after that many seconds of training, and says how many
+#:   iterations it trained (``CLOCK_LINE``).
+#: Training and the renders are nerfacto's own.
+BENCH_HOOKS = """import os
+import sys
+import time
+
+import torch
 import torchmetrics.image.lpip as lpip
 
 
@@ -88,7 +94,26 @@ class NoLPIPS(torch.nn.Module):
 
 
 lpip.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: NoLPIPS()
+
+if os.environ.get("BENCH_SECONDS"):
+    from nerfstudio.engine.trainer import Trainer
+
+    budget, train_iteration = float(os.environ["BENCH_SECONDS"]), Trainer.train_iteration
+
+    def clocked(self, step):
+        if not hasattr(self, "bench_start"):
+            self.bench_start, self.bench_first = time.perf_counter(), step
+        elapsed = time.perf_counter() - self.bench_start
+        if elapsed >= budget:
+            self.save_checkpoint(step - 1)
+            print(f"bench clock: {step - self.bench_first} iterations in {elapsed:.3f} s",
+                  flush=True)
+            sys.exit(0)
+        return train_iteration(self, step)
+
+    Trainer.train_iteration = clocked
 """
+CLOCK_LINE = re.compile(r"bench clock: (\d+) iterations in ([\d.]+) s")
 
 
 def posed(source: Path, out: Path) -> Path:
@@ -272,31 +297,25 @@ def nerfacto_venv(venv: Path) -> Path:
         for package in (NERFSTUDIO[:2], NERFSTUDIO[2:]):  # torch first, as pinned
             subprocess.run([venv / "bin" / "pip", "install", "-q", *package], check=True)
     site = next(venv.glob("lib/python*/site-packages"))
-    if not (site / "no_lpips.pth").is_file():
-        (site / "no_lpips.py").write_text(NO_LPIPS)
-        (site / "no_lpips.pth").write_text("import no_lpips\n")
+    (site / "bench_hooks.py").write_text(BENCH_HOOKS)
+    (site / "bench_hooks.pth").write_text("import bench_hooks\n")
     return venv / "bin"
 
 
 def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
-    """Train nerfacto on ``data_dir`` for about ``seconds`` (its iterations timed by a
-    probe run); its renders of the held-out views, iterations and training seconds (the
-    iterations times the median seconds of one in this run's log)."""
+    """Train nerfacto on ``data_dir`` for ``seconds`` of training (``BENCH_HOOKS``); its
+    renders of the held-out views, iterations and training seconds."""
     bin_dir = nerfacto_venv(venv)
     if not (run_dir / "result.json").is_file():
         run_dir.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir) as probe:
-            per_iter = _nerfacto_train(bin_dir, data_dir, Path(probe), NERFACTO_PROBE_ITERS)[1]
-        iterations = max(2, int(seconds / per_iter))
-        config, per_iter = _nerfacto_train(bin_dir, data_dir, run_dir / "train", iterations,
-                                           run_dir / "train.log")
+        config, iterations, trained = _nerfacto_train(bin_dir, data_dir, run_dir / "train",
+                                                      seconds, run_dir / "train.log")
         renders = config.parent / "renders"  # beside the config ns-train just made
         _run([bin_dir / "ns-eval", "--load-config", config, "--output-path",
               run_dir / "eval.json", "--render-output-path", renders], "ns-eval",
              TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD="1")  # its own checkpoint, pickled by torch<2.6
         (run_dir / "result.json").write_text(json.dumps(
-            {"iterations": iterations, "seconds": iterations * per_iter,
-             "renders": str(renders)}))
+            {"iterations": iterations, "seconds": trained, "renders": str(renders)}))
     result = json.loads((run_dir / "result.json").read_text())
     pairs = [np.asarray(Image.open(p).convert("RGB"), np.float32) / 255  # truth | render
              for p in sorted(Path(result.pop("renders")).glob("eval_img_*.png"))]
@@ -304,26 +323,23 @@ def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
     return result
 
 
-def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, iterations: int,
-                    log: Path | None = None):
+def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, seconds: float, log: Path):
     """Run ``ns-train nerfacto`` (its PyTorch implementation, on CUDA where its torch has
-    it) for ``iterations``, its output to ``log``; its config file and the seconds an
-    iteration takes: the median of the second half of what it logs at each step (a running
-    mean over up to 20 steps; its first iterations are the slowest)."""
+    it) for ``seconds`` of training, its output to ``log``; its config file, the iterations
+    it trained and the seconds they took."""
     device = ["--pipeline.model.implementation", "torch"]
     if not _has_cuda(bin_dir):
         device += ["--machine.device-type", "cpu"]
+    endless = str(10**8)  # the clock ends it (BENCH_HOOKS)
     output = _run([bin_dir / "ns-train", "nerfacto", "--output-dir", out,
-                   "--max-num-iterations", str(iterations), "--vis", "tensorboard",
-                   "--logging.steps-per-log", "1", "--logging.local-writer.max-log-size", "0",
-                   "--steps-per-save", str(iterations), "--viewer.quit-on-train-completion",
-                   "True", *device, "nerfstudio-data", "--data", data_dir,
-                   "--downscale-factor", "1"], "ns-train", log)
-    times = [60 * float(m or 0) + float(s or 0) + float(ms) / 1000
-             for step, m, s, ms in ITERATION_TIME.findall(output) if int(step) > 0]
-    if not times:
-        sys.exit(f"ns-train logged no iteration times:\n{output[-2000:]}")
-    return sorted(out.rglob("config.yml"))[-1], float(np.median(times[len(times) // 2:]))
+                   "--max-num-iterations", endless, "--steps-per-save", endless,
+                   "--vis", "tensorboard", "--logging.local-writer.max-log-size", "0",
+                   *device, "nerfstudio-data", "--data", data_dir, "--downscale-factor", "1"],
+                  "ns-train", log, BENCH_SECONDS=str(seconds))
+    clock = CLOCK_LINE.search(output)
+    if not clock:
+        sys.exit(f"ns-train did not stop by the clock:\n{output[-2000:]}")
+    return sorted(out.rglob("config.yml"))[-1], int(clock.group(1)), float(clock.group(2))
 
 
 def _has_cuda(bin_dir: Path) -> bool:

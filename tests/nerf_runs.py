@@ -4,8 +4,9 @@ from dataclasses import replace
 
 import torch
 
+from nerf_stage.backbones import GridConfig, HashConfig, MLPConfig
 from nerf_stage.data.dataset import load_dataset
-from nerf_stage.train.config import GridConfig, HashConfig, MLPConfig, TrainConfig
+from nerf_stage.train.config import TrainConfig
 from nerf_stage.train.trainer import train
 from palette_core.stack import read_stack
 

@@ -6,10 +6,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from nerf_stage.backbones import GridConfig, HashConfig, MLPConfig  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
 from nerf_stage.fields.grid import _corners, _Trilinear  # noqa: E402
 from nerf_stage.fields.hashgrid import HashEncoding, HashField  # noqa: E402
-from nerf_stage.train.config import GridConfig, HashConfig, MLPConfig  # noqa: E402
 
 #: A hash encoding whose two coarse levels index their vertices directly and whose finer
 #: two share hashed tables of 2^7 rows.

@@ -152,12 +152,12 @@ def edit_rows(model: nn.Module, optimiser: torch.optim.Optimizer, rows, moments,
               only: str | None = None) -> None:
     """Replace each splat parameter of ``model`` (one a parameter group of ``optimiser``,
     named by the group's ``name``) by ``rows(name, old)``, and its Adam moments by
-    ``moments(old)`` (zeroed when ``moments`` is None); ``only``: that parameter alone."""
+    ``moments(old)`` (zeroed when ``moments`` is None); ``only``: that parameter alone.
+    Groups of parameters that are not the model's (the run's appearance) are left alone."""
     for group in optimiser.param_groups:
-        name = group["name"]
-        if only is not None and name != only:
+        name, (old,) = group["name"], group["params"]
+        if getattr(model, name, None) is not old or only is not None and name != only:
             continue
-        (old,) = group["params"]
         new = nn.Parameter(rows(name, old.detach()), requires_grad=old.requires_grad)
         state = optimiser.state.pop(old, None)
         if state:

@@ -4,8 +4,8 @@ geometry or as palette weights.
 
 Training image i sees ``A_i rgb + b_i`` of the composited colour, with A_i (3, 3) and
 b_i (3,) learnt; their mean over the images is held at the identity (the gauge: the scene
-keeps the average image's appearance), and renders use the identity. Off by default
-(``TrainConfig.appearance``): simulated and Blender-rendered scenes have none to explain.
+keeps the average image's appearance), and renders use the identity. On by default
+(``TrainConfig.appearance``; docs/real_photos.md, "Exposure").
 
 References
 ----------

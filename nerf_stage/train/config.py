@@ -2,9 +2,9 @@
 
 ``TrainConfig`` holds the settings every backbone shares and one nested dataclass per
 backbone, made from ``backbones.BACKBONES`` (``grid``: ``GridConfig``, ...);
-``nerf-stage train`` makes one flag per field (``palette_core.cli.add_config_arguments``): ``--pretrain-iters``,
-``--grid-voxels``, ``--mlp-samples``, ... No torch here, so that the CLI can be
-built without the ``nerf`` extra.
+``nerf-stage train`` makes one flag per field (``palette_core.cli.add_config_arguments``):
+``--pretrain-iters``, ``--grid-voxels``, ``--mlp-samples``, ... No torch here, so that the
+CLI can be built without the ``nerf`` extra.
 """
 
 from __future__ import annotations
@@ -111,11 +111,12 @@ class TrainConfig:
     """Weight of the L2 loss of the colours through the weights (``weights @ basis``) against
     the images, added to the weights' own loss while the output is weights (0: the weights'
     loss alone)."""
-    appearance: bool = False
+    appearance: bool = True
     """Learn a colour transform per training image, applied after compositing, so that
     exposure and white balance that change from photo to photo leak neither into the
     geometry nor into the palette weights; renders show the images' average appearance
-    (``appearance.Appearance``). For photos; simulated and rendered scenes need none."""
+    (``appearance.Appearance``). Scenes without such changes (simulated, rendered) learn
+    transforms near the identity (docs/real_photos.md, "Exposure")."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour behind the scene, RGB in [0, 1]."""
     space: Space = Space.AUTO
