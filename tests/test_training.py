@@ -238,6 +238,24 @@ def test_under_a_wall_clock_limit_a_stage_progresses_with_its_time_too():
     assert progress(replace(config, minutes=0.0), 12, log) == pytest.approx(0.2)
 
 
+def test_a_backbones_table_entry_gives_its_config_section_and_flags():
+    """``TrainConfig`` and ``nerf-stage train`` follow ``BACKBONES``: a section of the entry's
+    settings per backbone, its flags, and in ``config.json`` the chosen backbone's only."""
+    import argparse
+    from dataclasses import fields
+
+    from nerf_stage.backbones import BACKBONES
+    from palette_core.cli import add_config_arguments
+
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser, TrainConfig())
+    flags = set(vars(parser.parse_args([])))
+    for name, spec in BACKBONES.items():
+        assert isinstance(getattr(TrainConfig(), name), spec.settings)
+        assert {f"{name}_{f.name}" for f in fields(spec.settings)} <= flags
+        assert set(TrainConfig(backbone=name).to_dict()) & set(BACKBONES) == {name}
+
+
 def test_deferred_is_a_boolean():
     assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
     with pytest.raises(InputError, match="deferred must be true or false"):
