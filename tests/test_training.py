@@ -256,6 +256,15 @@ def test_a_backbones_table_entry_gives_its_config_section_and_flags():
         assert set(TrainConfig(backbone=name).to_dict()) & set(BACKBONES) == {name}
 
 
+def test_a_config_saved_before_a_field_existed_reads_as_that_run_trained():
+    """Runs saved before per-image appearance and the depth loss trained without them."""
+    old = TrainConfig().to_dict()
+    del old["appearance"], old["depth_weight"]
+    config = TrainConfig.from_dict(old)
+    assert config.appearance is False and config.depth_weight == 0
+    assert TrainConfig.from_dict(TrainConfig().to_dict()).appearance is True
+
+
 def test_deferred_is_a_boolean():
     assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
     with pytest.raises(InputError, match="deferred must be true or false"):

@@ -186,7 +186,9 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "config") -> TrainConfig:
-        """The config of ``to_dict``; ``source`` names the file in errors.
+        """The config of ``to_dict``; ``source`` names the file in errors. A field that
+        ``data`` lacks takes its default, or, for one added since with another default,
+        the value the runs that saved such files trained with (``SAVED_WITHOUT``).
 
         Raises
         ------
@@ -195,6 +197,7 @@ class TrainConfig:
         """
         if not isinstance(data, dict):
             raise InputError(f"{source}: expected an object of config fields")
+        data = {**SAVED_WITHOUT, **data}
         known = {f.name: f for f in fields(cls)}
         unknown = sorted(set(data) - set(known))
         if unknown:
@@ -247,6 +250,10 @@ class TrainConfig:
             raise InputError(f"cannot read training config {path}: {exc}") from None
         return cls.from_dict(data, str(path))
 
+
+#: Fields added to ``TrainConfig`` with a default that earlier runs did not train with: the
+#: value a run folder's ``config.json`` without them stands for.
+SAVED_WITHOUT = {"appearance": False, "depth_weight": 0.0}
 
 #: The nested backbone settings of ``TrainConfig``, by field name.
 _NESTED = {name: spec.settings for name, spec in BACKBONES.items()}
