@@ -156,7 +156,7 @@ def edit_rows(model: nn.Module, optimiser: torch.optim.Optimizer, rows, moments,
     Groups of parameters that are not the model's (the run's appearance) are left alone."""
     for group in optimiser.param_groups:
         name, (old,) = group["name"], group["params"]
-        if getattr(model, name, None) is not old or only is not None and name != only:
+        if (only is not None and name != only) or getattr(model, name, None) is not old:
             continue
         new = nn.Parameter(rows(name, old.detach()), requires_grad=old.requires_grad)
         state = optimiser.state.pop(old, None)
