@@ -68,7 +68,11 @@ from nerf_stage.train.run import load_run
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
 PROBE_ITERS = 40  # iterations of the probe that times our NeRF
-HEADROOM = 2.0  # iterations planned beyond the probe's rate
+SPEED_UP = 2.0  # how much faster iterations run than the probe's (the occupancy grid prunes)
+#: Iterations planned beyond the expected ones, by whether the backbone is a field: a
+#: field's stages end by the clock with their rates decayed by it, so a longer plan costs
+#: nothing; splats grow on a schedule of iterations, which a longer plan would not finish.
+HEADROOM = {True: 2.0, False: 1.0}
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
@@ -196,9 +200,9 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget, its learning
     rates then decayed as at the stage's last iteration. The iterations come from the rate
-    of a probe run's second half (past the first iterations' warm-up), with ``HEADROOM``:
-    iterations speed up as the occupancy grid prunes empty space. A run whose iterations
-    end first reports the time it took."""
+    of a probe run's second half (past the first iterations' warm-up), times ``SPEED_UP``
+    (iterations speed up as the occupancy grid prunes empty space) and ``HEADROOM``. A run
+    whose iterations end first reports the time it took."""
     snapshots = run_dir.with_name(run_dir.name + "-snapshots")
     log = run_dir.with_name(run_dir.name + ".log")  # nerf-stage train's output
     data = load_dataset(data_dir)
@@ -209,11 +213,12 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
             _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0)
             probed = load_run(Path(probe) / "run").record.log
         probed = probed[len(probed) // 2:]
-        total = HEADROOM * seconds * (len(probed) - 1) / (probed[-1]["seconds"]
-                                                          - probed[0]["seconds"])
+        rate = (len(probed) - 1) / (probed[-1]["seconds"] - probed[0]["seconds"])
+        expected = SPEED_UP * seconds * rate
         with Snapshots(run_dir / "checkpoint.pt", snapshots):
-            _train(data_dir, run_dir, strategy, backbone, total, seconds / 60,
-                   every=max(1, round(total / max(1, curve_points))), log=log)
+            _train(data_dir, run_dir, strategy, backbone,
+                   expected * HEADROOM[BACKBONES[backbone].is_field], seconds / 60,
+                   every=max(1, round(expected / max(1, curve_points))), log=log)
     curve = []
     for path in sorted(snapshots.glob("*.pt")) if curve_points else ():
         with tempfile.TemporaryDirectory(dir=snapshots) as folder:

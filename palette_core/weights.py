@@ -22,7 +22,7 @@ import numpy as np
 from .colour_set import ColourSet
 from .errors import InputError
 from .mvc import rgb_to_mvc_weights
-from .polytope import Polytope
+from .polytope import Polytope, polytope_from_points
 from .registry import check_options, is_spatial
 from .rgbxy import rgbxy_image_weights
 
@@ -58,6 +58,35 @@ def colour_weights(colours: np.ndarray, poly: Polytope, method: str = "mvc",
     """
     function = check_weight_method(method, options, stream=True)
     return function(colours, poly, **options)
+
+
+def per_colour(method: str) -> bool:
+    """Whether ``method`` is a weight method whose weights follow the colour alone, so that a
+    stack's weights can be computed again for other colours (``palette_weights``)."""
+    return method in WEIGHT_METHODS and not is_spatial(WEIGHT_METHODS[method])
+
+
+def palette_weights(colours: np.ndarray, palette: np.ndarray, hull_faces: np.ndarray,
+                    method: str = "mvc", **options) -> np.ndarray:
+    """(D, K) weights of (D, 3) colours against a stored (K, 3) ``palette`` and its
+    (F, 3) ``hull_faces`` (a stack's; empty for a flat palette) by a per-colour ``method``,
+    in the palette's order: the weights a stack would hold for pixels of those colours.
+
+    Raises
+    ------
+    InputError
+        If the method is unknown, an option is not its own, or it is spatial.
+    """
+    palette = np.asarray(palette, np.float64)
+    if len(hull_faces):
+        poly = Polytope(palette, 3, np.zeros(3), np.eye(3), np.asarray(hull_faces, np.int64))
+    else:  # a flat palette's polytope orders its vertices around the polygon
+        poly = polytope_from_points(palette)
+    weights = colour_weights(colours, poly, method, **options)
+    columns = [int(np.flatnonzero((palette == vertex).all(1))[0]) for vertex in poly.vertices]
+    ordered = np.zeros((len(weights), len(palette)))
+    ordered[:, columns] = weights
+    return ordered
 
 
 def check_weight_method(method: str, options: dict, stream: bool = False):

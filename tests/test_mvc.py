@@ -132,3 +132,27 @@ def test_any_leading_shape(rng):
 def test_rejects_bad_colours(bad):
     with pytest.raises(InputError, match="rgb"):
         rgb_to_mvc_weights(bad, polytope_from_points(CUBE))
+
+
+@pytest.mark.parametrize("flat", [False, True])
+def test_a_stacks_weights_come_again_for_its_own_colours_in_its_palettes_order(photo_dir, flat,
+                                                                             tmp_path, rng):
+    """``palette_weights`` gives a stored palette's weights of other colours: for the
+    stack's own pixels, the weights it holds (a solid palette, and a flat one whose
+    polytope orders its vertices otherwise)."""
+    from PIL import Image
+
+    from palette_core.decompose import decompose
+    from palette_core.io import load_image
+    from palette_core.weights import palette_weights
+
+    if flat:  # colours of the plane blue = 0
+        photo_dir = tmp_path / "flat"
+        photo_dir.mkdir()
+        pixels = (rng.random((12, 12, 3)) * [255, 255, 0]).astype(np.uint8)
+        Image.fromarray(pixels).save(photo_dir / "a.png")
+    stack = decompose([str(photo_dir)], k=6).stack
+    assert (len(stack.hull_faces) == 0) == flat
+    image = load_image(photo_dir / stack.names[0])
+    weights = palette_weights(image.rgb.reshape(-1, 3), stack.palette, stack.hull_faces)
+    assert np.allclose(weights, stack.weights[0].reshape(len(weights), -1), atol=2e-3)

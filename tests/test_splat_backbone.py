@@ -304,11 +304,14 @@ def test_a_splat_run_evaluates_renders_bakes_and_exports(splat_run, tmp_path, ca
     assert (tmp_path / "s.ply").stat().st_size > 0
 
 
-def test_a_splat_run_resumes_where_it_stopped(cornell, tmp_path):
+@pytest.mark.parametrize("scene", ["cornell", "still_life"])
+def test_a_splat_run_resumes_where_it_stopped(scene, tmp_path, request):
+    """Transport weights, and additive ones whose palette stage recomputes its targets."""
+    root = request.getfixturevalue(scene)
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "8", "--finetune-iters", "4",
              "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6"]
-    assert main(["train", str(cornell), "-o", str(tmp_path / "a"), *flags]) == 0
-    assert main(["train", str(cornell), "-o", str(tmp_path / "a"), *flags, "--resume"]) == 0
+    assert main(["train", str(root), "-o", str(tmp_path / "a"), *flags]) == 0
+    assert main(["train", str(root), "-o", str(tmp_path / "a"), *flags, "--resume"]) == 0
     assert load_run(tmp_path / "a").record.iteration == 12
 
 

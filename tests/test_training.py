@@ -15,6 +15,7 @@ from nerf_stage.train import trainer as trainer_module  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
 from nerf_stage.train.metrics import psnr  # noqa: E402
 from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
+from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 from palette_core.stack import read_stack  # noqa: E402
 
@@ -138,10 +139,14 @@ def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_p
     assert batch_loss() < 0.75 * fresh
 
 
-@pytest.mark.parametrize("appearance", [False, True])
-def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch, appearance):
+@pytest.mark.parametrize("scene, appearance", [("cornell", False), ("cornell", True),
+                                               ("still_life", True)])
+def test_resume_gives_the_uninterrupted_result(scene, appearance, tmp_path, monkeypatch,
+                                               request):
+    """Transport weights, and additive ones whose palette stage recomputes its targets."""
+    root = request.getfixturevalue(scene)
     config = tiny_config(pretrain_iters=3, finetune_iters=3, appearance=appearance)
-    whole = trained(cornell, config, tmp_path / "whole")
+    whole = trained(root, config, tmp_path / "whole")
     save = trainer_module.save_checkpoint
 
     def save_then_stop(run, path, optimisers, generator):
@@ -151,9 +156,9 @@ def test_resume_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch, a
 
     monkeypatch.setattr(trainer_module, "save_checkpoint", save_then_stop)
     with pytest.raises(KeyboardInterrupt):
-        trained(cornell, config, tmp_path / "resumed")
+        trained(root, config, tmp_path / "resumed")
     monkeypatch.setattr(trainer_module, "save_checkpoint", save)
-    resumed = trained(cornell, config, tmp_path / "resumed", resume=True)
+    resumed = trained(root, config, tmp_path / "resumed", resume=True)
     for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()):
         assert torch.equal(a, b)
     assert [e["loss"] for e in whole.record.log] == [e["loss"] for e in resumed.record.log]
@@ -179,6 +184,35 @@ def test_colour_transforms_learn_each_images_exposure_around_the_average():
         optimiser.step()
     learnt = appearance(torch.eye(3).repeat(3, 1), torch.arange(3).repeat_interleave(3))
     assert torch.allclose(learnt.view(3, 3, 3), gains[:, None, None] * torch.eye(3), atol=0.02)
+
+
+def test_the_palette_stage_fits_the_weights_of_colours_with_their_exposure_undone(still_life):
+    """Two photos of one scene, one at 1.25 and one at 0.75 of the exposure: the palette
+    stage's targets are the weights of the scene's own colours, and a transport stack (whose
+    weights are not a function of colour) keeps its own."""
+    from nerf_stage.train.appearance import Appearance, exposure_free_weights
+    from palette_core.weights import palette_weights
+
+    stack = read_stack(still_life / "weights.npz")
+    appearance = Appearance(2)
+    with torch.no_grad():
+        appearance.affine[:, :, :3] *= torch.tensor([1.25, 0.75])[:, None, None]
+    colours = torch.tensor(stack.palette).mean(0) + 0.1 * torch.rand(64, 3) - 0.05
+    image, alpha = torch.arange(2).repeat(32), torch.ones(64)
+    recorded = appearance(colours, image).detach()
+    assert torch.allclose(appearance.undo(recorded, image), colours, atol=1e-6)
+    weights = exposure_free_weights(appearance, stack, recorded, image, alpha)
+    truth = palette_weights(colours.double().numpy(), stack.palette, stack.hull_faces)
+    assert np.allclose(weights.numpy(), truth, atol=1e-5)
+    transport = replace(stack, basis=Basis.TRANSPORT)
+    assert exposure_free_weights(appearance, transport, recorded, image, alpha) is None
+
+
+def test_the_palette_stage_keeps_the_colour_transforms_of_the_rgb_stage(still_life, tmp_path):
+    rgb = trained(still_life, tiny_config(pretrain_iters=3, finetune_iters=0, strategy="rgb"),
+                  tmp_path / "a")
+    both = trained(still_life, tiny_config(pretrain_iters=3, finetune_iters=3), tmp_path / "b")
+    assert torch.equal(rgb.appearance.affine, both.appearance.affine)
 
 
 def test_a_run_with_other_optimisers_does_not_resume(cornell, tmp_path):

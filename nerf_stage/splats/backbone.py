@@ -46,7 +46,7 @@ from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
 from ..render.contraction import EXTENT
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, scene_box, visual_hull
-from ..train.appearance import Appearance
+from ..train.appearance import Appearance, exposure_free_weights
 from ..train.config import Strategy, TrainConfig
 from ..train.losses import recorded_rgb_loss, ssim_loss, weight_loss
 from ..train.metrics import psnr_from_mse
@@ -315,6 +315,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     if config.appearance and run.appearance is None:
         run.appearance = Appearance(len(train_ids)).to(device)
     views = _training_views(run, dataset, train_ids, weights, device)
+    if run.kind != RGB:
+        views = _palette_views(run, stack, views)
     rundir.mkdir(parents=True, exist_ok=True)
     config.save(rundir / CONFIG)
     extent = 1.1 * float(max(torch.linalg.norm(v.pose[:3, 3]) for v in views))
@@ -333,6 +335,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     clock = time.perf_counter() - (log[-1]["seconds"] if log else 0.0)
     while it < last:
         if it >= config.pretrain_iters and run.kind == RGB:
+            views = _palette_views(run, stack, views)
             _start_palette(run, views, device)
             optimiser = _optimiser(run, extent)
         view = views[int(torch.randint(len(views), (1,), generator=generator))]
@@ -437,6 +440,24 @@ def _as_recorded(run: SplatRun, rgb: torch.Tensor, view: _View) -> torch.Tensor:
     return run.appearance(rgb.reshape(-1, 3), image).view(rgb.shape)
 
 
+def _palette_views(run: SplatRun, stack, views: list) -> list:
+    """The palette stage's training views: the images' colour transforms frozen and the
+    views' weights exposure-free (``appearance.exposure_free_weights``) where the run learnt
+    them."""
+    if run.appearance is None:
+        return views
+    run.appearance.requires_grad_(False)
+    out = []
+    for view in views:
+        image = torch.full(view.alpha.shape, view.image, device=view.alpha.device).flatten()
+        weights = exposure_free_weights(run.appearance, stack, view.rgb.reshape(-1, 3), image,
+                                        view.alpha.flatten())
+        if weights is None:
+            return views
+        out.append(replace(view, weights=weights.view(view.weights.shape)))
+    return out
+
+
 @torch.no_grad()
 def _start_palette(run: SplatRun, views: list, device) -> None:
     """Freeze the geometry and start each splat's weights at the mean of the training
@@ -476,7 +497,7 @@ def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:
              "residual": s.weights_lr / 20}
     groups = [{"name": name, "params": [p], "lr": rates[name]}
               for name, p in run.model.named_parameters() if p.requires_grad]
-    if run.appearance is not None:
+    if run.appearance is not None and run.kind == RGB:
         groups.append({"name": "appearance", "params": list(run.appearance.parameters()),
                        "lr": 1e-3})
     return torch.optim.Adam(groups, eps=1e-15)

@@ -7,6 +7,11 @@ b_i (3,) learnt; their mean over the images is held at the identity (the gauge: 
 keeps the average image's appearance), and renders use the identity. On by default
 (``TrainConfig.appearance``; docs/real_photos.md, "Exposure").
 
+The palette stage keeps the transforms that the RGB stage learnt, and asks for the weights
+of each pixel's colour with its image's transform undone (``exposure_free_weights``): the
+stack's weights were decomposed from the photos as recorded, exposure included, and would
+pull the weights back towards every photo's own exposure.
+
 References
 ----------
 R. Martin-Brualla et al. NeRF in the Wild. CVPR 2021 (an appearance code per image).
@@ -15,8 +20,13 @@ K. Rematas et al. Urban radiance fields. CVPR 2022 (an affine colour transform p
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
+
+from palette_core import Basis
+from palette_core.stack import WeightStack
+from palette_core.weights import palette_weights, per_colour
 
 
 class Appearance(nn.Module):
@@ -35,6 +45,32 @@ class Appearance(nn.Module):
         >>> Appearance(2)(torch.tensor([[0.2, 0.5, 0.9]]), torch.tensor([1]))
         tensor([[0.2000, 0.5000, 0.9000]], grad_fn=<AddBackward0>)
         """
-        affine = self.affine - self.affine.mean(0) + torch.eye(3, 4, device=rgb.device)
-        affine = affine[image]
+        affine = self.transforms()[image]
         return torch.einsum("bij,bj->bi", affine[..., :3], rgb) + affine[..., 3]
+
+    def transforms(self) -> torch.Tensor:
+        """(images, 3, 4) the transforms, their mean held at the identity."""
+        return self.affine - self.affine.mean(0) + torch.eye(3, 4, device=self.affine.device)
+
+    @torch.no_grad()
+    def undo(self, recorded: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        """(B, 3) colours as training images ``image`` (B,) recorded them -> (B, 3) the
+        composited colours that ``forward`` maps to them."""
+        affine = self.transforms()
+        inverse = torch.linalg.inv(affine[:, :, :3])[image]
+        return torch.einsum("bij,bj->bi", inverse, recorded - affine[image, :, 3])
+
+
+def exposure_free_weights(appearance: Appearance, stack: WeightStack, rgb: torch.Tensor,
+                          image: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor | None:
+    """(B, K) weight targets of training pixels of (B, 3) colours ``rgb`` and (B,) ``alpha``
+    in training images ``image`` (B,): the stack's weights (premultiplied by alpha) of the
+    colours with their image's transform undone. None where the stack's weights cannot be
+    computed again for other colours (the transport basis, spatial or simulated weights)."""
+    if stack.basis != Basis.ADDITIVE or not per_colour(stack.method):
+        return None
+    options = stack.meta.get("method_options") if isinstance(stack.meta, dict) else None
+    colours = appearance.undo(rgb, image).clamp(0, 1).double().cpu().numpy()
+    weights = palette_weights(colours, stack.palette, stack.hull_faces, stack.method,
+                              **(options if isinstance(options, dict) else {}))
+    return torch.as_tensor(weights.astype(np.float32), device=rgb.device) * alpha[:, None]

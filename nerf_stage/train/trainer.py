@@ -39,7 +39,7 @@ from ..fields import RGB, make_field
 from ..render.march import march_rays
 from ..render.occupancy import OccupancyGrid
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
-from .appearance import Appearance
+from .appearance import Appearance, exposure_free_weights
 from .config import Space, Strategy, TrainConfig
 from .losses import depth_loss, distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse
@@ -143,6 +143,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         if state["output"]["kind"] != run.field.kind:
             _start_finetune(run)
         restore(run, state)
+        if run.field.kind != RGB:
+            _palette_targets(run, stack, rays)
         generator.set_state(state["generator"])
         optimiser_states = state["optimisers"]
     start, log = run.record.iteration, run.record.log
@@ -161,6 +163,7 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         finetuning = config.strategy == Strategy.TWO_STAGE and it >= config.pretrain_iters
         if finetuning and run.field.kind == RGB:
             _start_finetune(run)
+            _palette_targets(run, stack, rays)
             _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
         loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning,
@@ -438,10 +441,25 @@ def _pixel_batch(config: TrainConfig, rays: dict, generator: torch.Generator) ->
 
 
 def _start_finetune(run: Run) -> None:
-    """Freeze the density part and put in a new M-channel output layer."""
-    for p in run.field.density_parameters():
+    """Freeze the density part (and the images' colour transforms) and put in a new
+    M-channel output layer."""
+    frozen = list(run.field.density_parameters())
+    if run.appearance is not None:
+        frozen += list(run.appearance.parameters())
+    for p in frozen:
         p.requires_grad_(False)
     run.field.set_output(run.basis, run.record.channels)
+
+
+def _palette_targets(run: Run, stack: WeightStack, rays: dict) -> None:
+    """Set the ray bank's weights to their exposure-free values where the run learnt
+    colour transforms (``appearance.exposure_free_weights``)."""
+    if run.appearance is None:
+        return
+    weights = exposure_free_weights(run.appearance, stack, rays["rgb"], rays["image"],
+                                    rays["alpha"])
+    if weights is not None:
+        rays["weights"] = weights
 
 
 def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: int = 100) -> None:
@@ -517,6 +535,6 @@ def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
     groups = [{"params": networks, "lr": backbone.network_lr}]
     if grids:
         groups.append({"params": grids, "lr": backbone.lr})
-    if run.appearance is not None:
+    if run.appearance is not None and run.field.kind == RGB:
         groups.append({"params": list(run.appearance.parameters()), "lr": backbone.network_lr})
     return [torch.optim.Adam(groups, fused=True)]
