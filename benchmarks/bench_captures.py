@@ -70,9 +70,11 @@ METHODS = ("palette", "rgb", "nerfacto")
 PROBE_ITERS = 40  # iterations of the probe that times our NeRF
 SPEED_UP = 2.0  # how much faster iterations run than the probe's (the occupancy grid prunes)
 #: Iterations planned beyond the expected ones, by whether the backbone is a field: a
-#: field's stages end by the clock with their rates decayed by it, so a longer plan costs
-#: nothing; splats grow on a schedule of iterations, which a longer plan would not finish.
-HEADROOM = {True: 2.0, False: 1.0}
+#: field's stages end by the clock with their rates decayed by it, so a plan far longer
+#: than the budget costs nothing and leaves the clock to end both stages (iterations speed
+#: up from capture to capture by up to ten times once space is pruned); splats grow on a
+#: schedule of iterations, which a longer plan would not finish.
+HEADROOM = {True: 10.0, False: 1.0}
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")

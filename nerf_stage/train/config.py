@@ -116,8 +116,9 @@ class TrainConfig:
     exposure and white balance that change from photo to photo leak neither into the
     geometry nor into the palette weights (the palette stage keeps the transforms and fits
     the weights of each pixel's colour with its image's transform undone); renders show the
-    images' average appearance (``appearance.Appearance``). Scenes without such changes (simulated, rendered) learn
-    transforms near the identity (docs/real_photos.md, "Exposure")."""
+    images' average appearance (``appearance.Appearance``). Scenes without such changes
+    (simulated, rendered) learn transforms near the identity (docs/real_photos.md,
+    "Exposure")."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour behind the scene, RGB in [0, 1]."""
     space: Space = Space.AUTO
