@@ -208,13 +208,6 @@ def test_the_palette_stage_fits_the_weights_of_colours_with_their_exposure_undon
     assert exposure_free_weights(appearance, transport, recorded, image, alpha) is None
 
 
-def test_the_palette_stage_keeps_the_colour_transforms_of_the_rgb_stage(still_life, tmp_path):
-    rgb = trained(still_life, tiny_config(pretrain_iters=3, finetune_iters=0, strategy="rgb"),
-                  tmp_path / "a")
-    both = trained(still_life, tiny_config(pretrain_iters=3, finetune_iters=3), tmp_path / "b")
-    assert torch.equal(rgb.appearance.affine, both.appearance.affine)
-
-
 def test_a_run_with_other_optimisers_does_not_resume(cornell, tmp_path):
     config = tiny_config(pretrain_iters=1, finetune_iters=1)
     trained(cornell, config, tmp_path / "run")

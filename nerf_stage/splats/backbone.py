@@ -315,8 +315,6 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     if config.appearance and run.appearance is None:
         run.appearance = Appearance(len(train_ids)).to(device)
     views = _training_views(run, dataset, train_ids, weights, device)
-    if run.kind != RGB:
-        views = _palette_views(run, stack, views)
     rundir.mkdir(parents=True, exist_ok=True)
     config.save(rundir / CONFIG)
     extent = 1.1 * float(max(torch.linalg.norm(v.pose[:3, 3]) for v in views))
@@ -338,6 +336,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
             views = _palette_views(run, stack, views)
             _start_palette(run, views, device)
             optimiser = _optimiser(run, extent)
+        elif run.kind != RGB and it % config.checkpoint_every == 0:
+            views = _palette_views(run, stack, views)
         view = views[int(torch.randint(len(views), (1,), generator=generator))]
         _set_rates(optimiser, config, extent, it, log, last)
         view = _patch(view, settings.patch, generator)
@@ -441,12 +441,11 @@ def _as_recorded(run: SplatRun, rgb: torch.Tensor, view: _View) -> torch.Tensor:
 
 
 def _palette_views(run: SplatRun, stack, views: list) -> list:
-    """The palette stage's training views: the images' colour transforms frozen and the
-    views' weights exposure-free (``appearance.exposure_free_weights``) where the run learnt
-    them."""
+    """The palette stage's training views, their weights exposure-free under the current
+    colour transforms where the run learns them (``appearance.exposure_free_weights``): as
+    the stage starts and at every checkpoint, where a resumed run computes them too."""
     if run.appearance is None:
         return views
-    run.appearance.requires_grad_(False)
     out = []
     for view in views:
         image = torch.full(view.alpha.shape, view.image, device=view.alpha.device).flatten()
@@ -497,7 +496,7 @@ def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:
              "residual": s.weights_lr / 20}
     groups = [{"name": name, "params": [p], "lr": rates[name]}
               for name, p in run.model.named_parameters() if p.requires_grad]
-    if run.appearance is not None and run.kind == RGB:
+    if run.appearance is not None:
         groups.append({"name": "appearance", "params": list(run.appearance.parameters()),
                        "lr": 1e-3})
     return torch.optim.Adam(groups, eps=1e-15)

@@ -7,8 +7,8 @@ b_i (3,) learnt; their mean over the images is held at the identity (the gauge: 
 keeps the average image's appearance), and renders use the identity. On by default
 (``TrainConfig.appearance``; docs/real_photos.md, "Exposure").
 
-The palette stage keeps the transforms that the RGB stage learnt, and asks for the weights
-of each pixel's colour with its image's transform undone (``exposure_free_weights``): the
+The palette stage asks for the weights of each pixel's colour with its image's transform
+undone (``exposure_free_weights``, computed again as the transforms go on learning): the
 stack's weights were decomposed from the photos as recorded, exposure included, and would
 pull the weights back towards every photo's own exposure.
 

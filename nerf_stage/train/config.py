@@ -114,8 +114,8 @@ class TrainConfig:
     appearance: bool = True
     """Learn a colour transform per training image, applied after compositing, so that
     exposure and white balance that change from photo to photo leak neither into the
-    geometry nor into the palette weights (the palette stage keeps the transforms and fits
-    the weights of each pixel's colour with its image's transform undone); renders show the
+    geometry nor into the palette weights (the palette stage fits the weights of each
+    pixel's colour with its image's transform undone); renders show the
     images' average appearance (``appearance.Appearance``). Scenes without such changes
     (simulated, rendered) learn transforms near the identity (docs/real_photos.md,
     "Exposure")."""

@@ -143,8 +143,6 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         if state["output"]["kind"] != run.field.kind:
             _start_finetune(run)
         restore(run, state)
-        if run.field.kind != RGB:
-            _palette_targets(run, stack, rays)
         generator.set_state(state["generator"])
         optimiser_states = state["optimisers"]
     start, log = run.record.iteration, run.record.log
@@ -166,6 +164,8 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
             _palette_targets(run, stack, rays)
             _fit_output(run, rays, generator)
             optimisers = _optimisers(run)
+        elif finetuning and it % config.checkpoint_every == 0:
+            _palette_targets(run, stack, rays)
         loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning,
                            log, depth)
         log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
@@ -441,19 +441,16 @@ def _pixel_batch(config: TrainConfig, rays: dict, generator: torch.Generator) ->
 
 
 def _start_finetune(run: Run) -> None:
-    """Freeze the density part (and the images' colour transforms) and put in a new
-    M-channel output layer."""
-    frozen = list(run.field.density_parameters())
-    if run.appearance is not None:
-        frozen += list(run.appearance.parameters())
-    for p in frozen:
+    """Freeze the density part and put in a new M-channel output layer."""
+    for p in run.field.density_parameters():
         p.requires_grad_(False)
     run.field.set_output(run.basis, run.record.channels)
 
 
 def _palette_targets(run: Run, stack: WeightStack, rays: dict) -> None:
-    """Set the ray bank's weights to their exposure-free values where the run learnt
-    colour transforms (``appearance.exposure_free_weights``)."""
+    """Set the ray bank's weights to their exposure-free values under the current colour
+    transforms, where the run learns them (``appearance.exposure_free_weights``): as
+    fine-tuning starts and at every checkpoint, where a resumed run computes them too."""
     if run.appearance is None:
         return
     weights = exposure_free_weights(run.appearance, stack, rays["rgb"], rays["image"],
@@ -535,6 +532,6 @@ def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
     groups = [{"params": networks, "lr": backbone.network_lr}]
     if grids:
         groups.append({"params": grids, "lr": backbone.lr})
-    if run.appearance is not None and run.field.kind == RGB:
+    if run.appearance is not None:
         groups.append({"params": list(run.appearance.parameters()), "lr": backbone.network_lr})
     return [torch.optim.Adam(groups, fused=True)]
