@@ -446,15 +446,16 @@ def _palette_views(run: SplatRun, stack, views: list) -> list:
     the stage starts and at every checkpoint, where a resumed run computes them too."""
     if run.appearance is None:
         return views
-    out = []
-    for view in views:
-        image = torch.full(view.alpha.shape, view.image, device=view.alpha.device).flatten()
-        weights = exposure_free_weights(run.appearance, stack, view.rgb.reshape(-1, 3), image,
-                                        view.alpha.flatten())
-        if weights is None:
-            return views
-        out.append(replace(view, weights=weights.view(view.weights.shape)))
-    return out
+    sizes = [view.alpha.numel() for view in views]
+    image = torch.cat([torch.full((size,), view.image, device=view.alpha.device)
+                       for view, size in zip(views, sizes)])
+    weights = exposure_free_weights(run.appearance, stack,
+                                    torch.cat([view.rgb.reshape(-1, 3) for view in views]),
+                                    image, torch.cat([view.alpha.flatten() for view in views]))
+    if weights is None:
+        return views
+    return [replace(view, weights=part.view(view.weights.shape))
+            for view, part in zip(views, weights.split(sizes))]
 
 
 @torch.no_grad()

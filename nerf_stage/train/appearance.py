@@ -69,7 +69,7 @@ def exposure_free_weights(appearance: Appearance, stack: WeightStack, rgb: torch
     computed again for other colours (the transport basis, spatial or simulated weights)."""
     if stack.basis != Basis.ADDITIVE or not per_colour(stack.method):
         return None
-    options = stack.meta.get("method_options") if isinstance(stack.meta, dict) else None
+    options = stack.meta.get("method_options", {})
     colours = appearance.undo(rgb, image).clamp(0, 1).double().cpu().numpy()
     weights = palette_weights(colours, stack.palette, stack.hull_faces, stack.method,
                               **(options if isinstance(options, dict) else {}))
