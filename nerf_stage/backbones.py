@@ -201,7 +201,7 @@ class SplatConfig:
     colours_lr: float = 2.5e-3
     """Adam learning rate of the degree-0 colour (RGB stage); degrees above it take a
     twentieth."""
-    weights_lr: float = 1e-2
+    weights_lr: float = 3e-2
     """Adam learning rate of the palette weights (palette stage); their view-dependent
     residual takes a twentieth."""
 

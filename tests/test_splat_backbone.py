@@ -13,9 +13,9 @@ torch = pytest.importorskip("torch")
 from nerf_stage.backbones import SplatConfig  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
-from nerf_stage.fields.base import RGB  # noqa: E402
-from nerf_stage.splats import read_splats  # noqa: E402
-from nerf_stage.splats.backbone import SplatModel  # noqa: E402
+from nerf_stage.fields.base import ACTIVATIONS, RGB  # noqa: E402
+from nerf_stage.splats import backbone, read_splats  # noqa: E402
+from nerf_stage.splats.backbone import GEOMETRY, SplatModel  # noqa: E402
 from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
 from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
@@ -304,15 +304,57 @@ def test_a_splat_run_evaluates_renders_bakes_and_exports(splat_run, tmp_path, ca
     assert (tmp_path / "s.ply").stat().st_size > 0
 
 
-@pytest.mark.parametrize("scene", ["cornell", "still_life"])
-def test_a_splat_run_resumes_where_it_stopped(scene, tmp_path, request):
-    """Transport weights, and additive ones whose palette stage recomputes its targets."""
+@pytest.mark.parametrize("scene, footprint_bytes", [("cornell", backbone.FOOTPRINT_BYTES),
+                                                    ("still_life", 0)])
+def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, request,
+                                              monkeypatch):
+    """Transport weights, and additive ones whose palette stage recomputes its targets and
+    draws its views afresh (no room for their footprints)."""
+    monkeypatch.setattr(backbone, "FOOTPRINT_BYTES", footprint_bytes)
     root = request.getfixturevalue(scene)
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "8", "--finetune-iters", "4",
              "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6"]
     assert main(["train", str(root), "-o", str(tmp_path / "a"), *flags]) == 0
     assert main(["train", str(root), "-o", str(tmp_path / "a"), *flags, "--resume"]) == 0
     assert load_run(tmp_path / "a").record.iteration == 12
+
+
+def _before_the_palette_stage(run):
+    """The run with its geometry in an RGB model, as its palette stage found it."""
+    tensors = {name: getattr(run.model, name).detach().clone() for name in GEOMETRY}
+    n, rest = len(tensors["means"]), sh_terms(run.model.degree) - 1
+    tensors.update(colours=torch.zeros(n, 3), colours_rest=torch.zeros(n, rest, 3))
+    return replace(run, model=SplatModel(tensors, RGB, run.model.degree))
+
+
+def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
+    """A view's footprint draws what the rasteriser draws; training weights that one weight
+    vector makes everywhere start every splat there, from footprints kept or drawn afresh."""
+    run = load_run(splat_run)
+    data = run.dataset()
+    ids = data.indices("train")[:6]
+    camera, channels = data.camera(ids[0]), run.model.weights.shape[1]
+    views = backbone._training_views(run, data, ids, np.zeros(
+        (len(ids), camera.height, camera.width, channels)), "cpu")
+    footprints = backbone._footprints(run, views)
+    values = run.model.values(views[0].pose[:3, 3]).detach()
+    covariance, opacity = run.model.gaussians()
+    drawn, acc = draw(run.model.means, covariance, values, opacity, views[0].pose, camera,
+                      run.config.splats.reach)
+    assert torch.allclose(footprints[0].matrix @ values, drawn, atol=1e-5)
+    assert torch.equal(footprints[0].opacity, acc)
+
+    one = 0.1 + 0.9 * torch.rand(channels, generator=torch.Generator().manual_seed(0))
+    views = [replace(v, weights=(f.opacity[:, None] * one).view(v.weights.shape))
+             for v, f in zip(views, footprints)]
+    for kept in (footprints, [None] * len(views)):
+        started = _before_the_palette_stage(run)
+        backbone._start_palette(started, views, kept)
+        assert not started.model.means.requires_grad
+        weights = ACTIVATIONS[started.kind](started.model.weights.detach())
+        for view, footprint in zip(views, footprints):
+            assert torch.allclose(footprint.matrix @ weights, view.weights.view(-1, channels),
+                                  atol=1e-4)
 
 
 def test_a_checkpoint_with_splats_of_the_wrong_shape_is_refused(splat_run, tmp_path, capsys):

@@ -228,6 +228,8 @@ def test_a_wall_clock_limit_ends_each_stage_at_its_share(cornell, tmp_path):
     assert trainer_module.next_iteration(replace(config, minutes=0.0), 7, 1e9) == 7
     with pytest.raises(InputError, match="minutes"):
         TrainConfig(minutes=-1.0)
+    # subnormals, flushed to zero while training, are back after it
+    assert float(torch.tensor(1e-40) * torch.tensor(1.0)) > 0
 
 
 @pytest.mark.parametrize("loss", ["rgb_weight", "sparsity_weight"])

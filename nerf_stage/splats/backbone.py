@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import os
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -42,7 +43,7 @@ from palette_core.errors import InputError, first_line
 from ..data.cameras import Intrinsics
 from ..data.dataset import Dataset
 from ..data.points import Points
-from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
+from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB, inverse_tone_map, tone_map
 from ..render.contraction import EXTENT
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, scene_box, visual_hull
@@ -73,6 +74,9 @@ PIXELS_PER_INITIAL = 4
 MIN_POINTS = 4  # a capture with fewer sparse points starts at random
 HULL_CELLS = 64  # along each side of the box: the visual hull that bounded scenes start in
 FAR_SHELL = 1.9  # far splats start in the contracted shell out to this (10 box half sizes)
+#: Bytes of frozen footprints the palette stage keeps (``_footprints``): views past them
+#: are drawn again at each visit.
+FOOTPRINT_BYTES = 512 << 20
 
 
 class SplatModel(nn.Module):
@@ -331,18 +335,23 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     log, it = run.record.log, run.record.iteration
     bar = tqdm(desc="train splats", initial=it, total=last, disable=not progress, unit="it")
     clock = time.perf_counter() - (log[-1]["seconds"] if log else 0.0)
+    footprints = None
     while it < last:
         if it >= config.pretrain_iters and run.kind == RGB:
             views = _palette_views(run, stack, views)
-            _start_palette(run, views, device)
+            footprints = _footprints(run, views)
+            _start_palette(run, views, footprints)
             optimiser = _optimiser(run, extent)
         elif run.kind != RGB and it % config.checkpoint_every == 0:
             views = _palette_views(run, stack, views)
-        view = views[int(torch.randint(len(views), (1,), generator=generator))]
+        if run.kind != RGB and footprints is None:  # resumed in the palette stage
+            footprints = _footprints(run, views)
+        index = int(torch.randint(len(views), (1,), generator=generator))
+        footprint = footprints[index] if footprints else None
         _set_rates(optimiser, config, extent, it, log, last)
-        view = _patch(view, settings.patch, generator)
+        view = views[index] if footprint else _patch(views[index], settings.patch, generator)
         info = {}
-        loss, psnr = _loss(run, view, terms, background, it, info)
+        loss, psnr = _loss(run, view, terms, background, it, info, footprint)
         optimiser.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             raise InputError(f"training diverged at iteration {it + 1} (the loss is not "
@@ -405,15 +414,21 @@ def _training_views(run: SplatRun, dataset: Dataset, train_ids, weights, device)
             for n, i in enumerate(train_ids)]
 
 
-def _loss(run: SplatRun, view: _View, terms, background, it: int,
-          info: dict) -> tuple[torch.Tensor, float]:
+def _loss(run: SplatRun, view: _View, terms, background, it: int, info: dict,
+          footprint: _Footprint | None = None) -> tuple[torch.Tensor, float]:
     """Loss of one training view and the PSNR of its colours (through the weights in the
-    palette stage); ``info`` receives what densification needs (``rasterise.draw``)."""
+    palette stage, from the view's ``footprint`` when it has one); ``info`` receives what
+    densification needs (``rasterise.draw``)."""
     model, config = run.model, run.config
-    degree = min(model.degree, it // config.splats.sh_every) if model.kind == RGB else None
-    covariance, opacity = model.gaussians()
-    values, acc = draw(model.means, covariance, model.values(view.pose[:3, 3], degree), opacity,
-                       view.pose, view.camera, config.splats.reach, info, view.window)
+    if model.kind == RGB:
+        degree = min(model.degree, it // config.splats.sh_every)
+        covariance, opacity = model.gaussians()
+        values, acc = draw(model.means, covariance, model.values(view.pose[:3, 3], degree),
+                           opacity, view.pose, view.camera, config.splats.reach, info,
+                           view.window)
+    else:
+        footprint = footprint or _footprint(run, view)
+        values, acc = footprint.matrix @ model.values(view.pose[:3, 3]), footprint.opacity
     w, h = view.window[2:]
     values, acc = values.view(h, w, -1), acc.view(h, w)
     if model.kind == RGB:
@@ -458,31 +473,70 @@ def _palette_views(run: SplatRun, stack, views: list) -> list:
             for view, part in zip(views, weights.split(sizes))]
 
 
+@dataclass
+class _Footprint:
+    """A view's splats with the geometry frozen: the (H W, S) sparse ``matrix`` of each
+    pixel's contributions (transmittance x alpha of its splats) and the (H W,) ``opacity``,
+    so that the view's values are ``matrix @ values``, drawn without projecting or sorting."""
+
+    matrix: torch.Tensor
+    opacity: torch.Tensor
+
+    @property
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (
+            self.matrix.crow_indices(), self.matrix.col_indices(), self.matrix.values()))
+
+
 @torch.no_grad()
-def _start_palette(run: SplatRun, views: list, device) -> None:
+def _footprint(run: SplatRun, view: _View) -> _Footprint:
+    """The footprint of ``view`` (its window) under the run's current geometry."""
+    model = run.model
+    covariance, opacity = model.gaussians()
+    info = {}
+    _, acc = draw(model.means, covariance, model.means.new_zeros(len(model.means), 0), opacity,
+                  view.pose, view.camera, run.config.splats.reach, info, view.window)
+    pixel, splat, contribution = info.get("pairs", (acc.new_zeros(0, dtype=torch.long),) * 2
+                                          + (acc.new_zeros(0),))
+    with warnings.catch_warnings():  # torch calls its sparse CSR support beta
+        warnings.simplefilter("ignore", UserWarning)
+        matrix = torch.sparse_coo_tensor(torch.stack([pixel, splat]), contribution,
+                                         (len(acc), len(model.means)), check_invariants=False
+                                         ).coalesce().to_sparse_csr()
+    return _Footprint(matrix, acc)
+
+
+def _footprints(run: SplatRun, views: list) -> list:
+    """The footprints of ``views`` in their order, while they fit in ``FOOTPRINT_BYTES``
+    (None for the views past them, drawn again at each visit)."""
+    footprints, used = [], 0
+    for view in tqdm(views, desc="footprints", unit="view", leave=False):
+        footprints.append(_footprint(run, view) if used < FOOTPRINT_BYTES else None)
+        used += footprints[-1].nbytes if footprints[-1] else 0
+    return footprints
+
+
+@torch.no_grad()
+def _start_palette(run: SplatRun, views: list, footprints: list) -> None:
     """Freeze the geometry and start each splat's weights at the mean of the training
-    weights it sends light to, weighted by that light (one pass over the views; a splat
-    no view sees starts at the mean weights)."""
+    weights it sends light to, weighted by that light (each pixel's weights over its
+    opacity, from the views' ``footprints`` or drawn afresh); transport weights are
+    averaged tone-mapped, as the weight loss compares them, so that a splat on an emitter's
+    edge does not start at its radiance; a splat no view sees starts at the mean weights."""
     model = run.model
     channels = views[0].weights.shape[-1]
-    light = torch.zeros(len(model.means), channels + 1, device=device)
-    covariance, opacity = model.gaussians()
-    empty = model.means.new_zeros(len(model.means), 1)  # no values: the pairs are the point
-    for view in views:
-        info = {}
-        draw(model.means, covariance, empty, opacity, view.pose, view.camera,
-             run.config.splats.reach, info)
-        if "pairs" not in info:
-            continue
-        pixel, splat, contribution = info["pairs"]
-        straight = view.weights.view(-1, channels)
-        if run.basis == Basis.ADDITIVE:  # premultiplied by alpha in the views
-            straight = straight / view.alpha.view(-1, 1).clamp(min=1e-6)
-        target = torch.cat([straight, torch.ones_like(straight[:, :1])], 1)
-        light.index_add_(0, splat, contribution[:, None] * target[pixel])
+    transport = run.basis == Basis.TRANSPORT
+    light = model.means.new_zeros(len(model.means), channels + 1)  # weights, then light
+    for view, footprint in zip(views, footprints):
+        footprint = footprint or _footprint(run, view)
+        straight = view.weights.view(-1, channels) / footprint.opacity[:, None].clamp(min=1e-6)
+        straight = tone_map(straight) if transport else straight
+        light += footprint.matrix.t() @ torch.cat([straight, torch.ones_like(straight[:, :1])],
+                                                  1)
     mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
-    seen = light[:, -1:] > 1e-6
-    weights = torch.where(seen, light[:, :-1] / light[:, -1:].clamp(min=1e-6), mean)
+    weights = light[:, :-1] / light[:, -1:].clamp(min=1e-6)
+    weights = inverse_tone_map(weights.clamp(max=1 - 1e-6)) if transport else weights
+    weights = torch.where(light[:, -1:] > 1e-6, weights, mean)
     if run.basis == Basis.ADDITIVE:
         weights = weights / weights.sum(1, keepdim=True).clamp(min=1e-6)
     model.set_output(run.basis, weights.clamp(min=0))
@@ -500,7 +554,7 @@ def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:
     if run.appearance is not None:
         groups.append({"name": "appearance", "params": list(run.appearance.parameters()),
                        "lr": 1e-3})
-    return torch.optim.Adam(groups, eps=1e-15)
+    return torch.optim.Adam(groups, eps=1e-15, fused=True)
 
 
 def _set_rates(optimiser, config: TrainConfig, extent: float, it: int, log: list,

@@ -22,6 +22,7 @@ import os
 import resource
 import time
 from bisect import bisect_right
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -121,6 +122,26 @@ def train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str
         If the weights do not match the dataset, the run folder is not as ``resume`` and
         ``force`` say, or the checkpoint does not match the config.
     """
+    with _subnormals_flushed():
+        return _train(config, dataset, stack, rundir, resume, force, weights_path, progress,
+                      device)
+
+
+@contextmanager
+def _subnormals_flushed():
+    """Subnormal floats flushed to zero while it lasts, IEEE arithmetic after: Adam's
+    moments of what a step does not touch (voxels off its rays, splats out of its view)
+    decay into subnormals, on which CPUs compute many times slower (docs/training.md)."""
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
+
+
+def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
+           resume: bool, force: bool, weights_path: str, progress: bool,
+           device: torch.device | None) -> Run:
     spec = BACKBONES[config.backbone]
     if not spec.is_field:
         return spec.module().train(config, dataset, stack, rundir, resume, force, weights_path,
