@@ -420,14 +420,13 @@ def _loss(run: SplatRun, view: _View, terms, background, it: int, info: dict,
     palette stage, from the view's ``footprint`` when it has one); ``info`` receives what
     densification needs (``rasterise.draw``)."""
     model, config = run.model, run.config
-    if model.kind == RGB:
-        degree = min(model.degree, it // config.splats.sh_every)
+    if footprint is None:
+        degree = min(model.degree, it // config.splats.sh_every) if model.kind == RGB else None
         covariance, opacity = model.gaussians()
         values, acc = draw(model.means, covariance, model.values(view.pose[:3, 3], degree),
                            opacity, view.pose, view.camera, config.splats.reach, info,
                            view.window)
     else:
-        footprint = footprint or _footprint(run, view)
         values, acc = footprint.matrix @ model.values(view.pose[:3, 3]), footprint.opacity
     w, h = view.window[2:]
     values, acc = values.view(h, w, -1), acc.view(h, w)
