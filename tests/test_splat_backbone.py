@@ -286,8 +286,9 @@ def test_a_splat_run_trains_saves_loads_and_renders_the_same(splat_run, cornell)
     test = run.dataset().indices("test")
     poses = run.dataset().poses[test]
     weights, acc = run.render(poses)
-    again = load_run(splat_run).render(poses)
-    assert np.array_equal(weights, again[0]) and np.array_equal(acc, again[1])
+    again = load_run(splat_run).render(poses)  # CUDA's atomic sums differ in their last bits
+    assert np.allclose(weights, again[0], rtol=0, atol=1e-6)
+    assert np.allclose(acc, again[1], rtol=0, atol=1e-6)
     assert np.isfinite(weights).all() and weights.min() >= 0 and acc.max() <= 1 + 1e-5
     assert 0 <= run.residual_share(poses) < 1
 
@@ -323,7 +324,8 @@ def _before_the_palette_stage(run):
     """The run with its geometry in an RGB model, as its palette stage found it."""
     tensors = {name: getattr(run.model, name).detach().clone() for name in GEOMETRY}
     n, rest = len(tensors["means"]), sh_terms(run.model.degree) - 1
-    tensors.update(colours=torch.zeros(n, 3), colours_rest=torch.zeros(n, rest, 3))
+    zeros = tensors["means"].new_zeros
+    tensors.update(colours=zeros(n, 3), colours_rest=zeros(n, rest, 3))
     return replace(run, model=SplatModel(tensors, RGB, run.model.degree))
 
 
@@ -334,8 +336,9 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
     data = run.dataset()
     ids = data.indices("train")[:6]
     camera, channels = data.camera(ids[0]), run.model.weights.shape[1]
+    device = run.model.means.device
     views = backbone._training_views(run, data, ids, np.zeros(
-        (len(ids), camera.height, camera.width, channels)), "cpu")
+        (len(ids), camera.height, camera.width, channels)), device)
     footprints = backbone._footprints(run, views)
     values = run.model.values(views[0].pose[:3, 3]).detach()
     covariance, opacity = run.model.gaussians()
@@ -345,6 +348,7 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
     assert torch.equal(footprints[0].opacity, acc)
 
     one = 0.1 + 0.9 * torch.rand(channels, generator=torch.Generator().manual_seed(0))
+    one = one.to(device)
     views = [replace(v, weights=(f.opacity[:, None] * one).view(v.weights.shape))
              for v, f in zip(views, footprints)]
     for kept in (footprints, [None] * len(views)):
@@ -440,10 +444,11 @@ def test_the_ply_of_a_splat_run_carries_its_view_dependence(splat_run, tmp_path)
     basis = sh_basis(torch.as_tensor(directions), 3).numpy()
     viewer = 0.28209479177387814 * dc + 0.5 + np.einsum("sb,scb->sc", basis[:, 1:], rest)
     eye_box = torch.as_tensor((eye - run.box.centre) / run.box.scale, dtype=torch.float32)
+    model = run.model.to("cpu")
     with torch.no_grad():
-        raw = torch.nn.functional.softplus(run.model.weights) + torch.einsum(
-            "sb,sbm->sm", torch.as_tensor(basis[:, 1:], dtype=torch.float32), run.model.residual)
-        drawn = (run.model.values(eye_box) @ torch.as_tensor(run.terms, dtype=torch.float32))
+        raw = torch.nn.functional.softplus(model.weights) + torch.einsum(
+            "sb,sbm->sm", torch.as_tensor(basis[:, 1:], dtype=torch.float32), model.residual)
+        drawn = (model.values(eye_box) @ torch.as_tensor(run.terms, dtype=torch.float32))
     plain = ((raw >= 0).all(1) & (torch.as_tensor(splats.colours()) < 1).all(1)).numpy()
     assert plain.sum() >= 20
     assert np.allclose(viewer[plain], drawn.numpy()[plain], atol=1e-4)
