@@ -142,6 +142,34 @@ def test_a_walk_forward_registers_with_sequential_matching(tmp_path):
     rotation, centre = pose_errors(dataset.poses, poses)
     assert rotation.max() < 3.0 and centre.max() < 0.1
 
+
+def test_a_posed_capture_keeps_its_poses_and_gets_points_on_its_surfaces(corner, tmp_path):
+    """A capture with known poses (nerfstudio's ``transforms.json``, every other photo held
+    out by name) is matched and its points triangulated from those poses: they lie on the
+    room corner's floor and walls, in the frame of the poses, which the capture keeps."""
+    folder, poses = corner
+    posed = tmp_path / "posed"
+    shutil.copytree(folder, posed / "images")
+    names = sorted(p.name for p in folder.iterdir())
+    (posed / "transforms.json").write_text(json.dumps({
+        "w": CAMERA.width, "h": CAMERA.height, "fl_x": CAMERA.fx, "fl_y": CAMERA.fy,
+        "cx": CAMERA.cx, "cy": CAMERA.cy,
+        "train_filenames": [f"images/{n}" for n in names[::2]],
+        "test_filenames": [f"images/{n}" for n in names[1::2]],
+        "frames": [{"file_path": f"images/{n}", "transform_matrix": pose.tolist()}
+                   for n, pose in zip(names, poses)]}))
+    out = tmp_path / "capture"
+    assert nerf_stage(["poses", str(posed), "-o", str(out)]) == 0
+    dataset = load_dataset(out)
+    assert np.allclose(dataset.poses, poses) and dataset.intrinsics == CAMERA
+    assert dataset.indices("test").tolist() == [1, 3, 5, 7, 9]
+    points = dataset.points.positions
+    assert len(points) > 100
+    planes = np.abs(np.stack([points[:, 1], points[:, 2] + 2, points[:, 0] + 2]))
+    distance = planes.min(0)  # a pixel is about 2 cm across on the walls
+    assert np.median(distance) < 0.02 and np.mean(distance < 0.1) > 0.9, np.percentile(distance, [50, 90])
+
+
 def test_text_and_binary_models_read_the_same(capture, tmp_path):
     model = pycolmap.Reconstruction(capture / "sparse" / "0")
     datasets = []

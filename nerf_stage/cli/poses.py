@@ -14,10 +14,14 @@ def add(commands) -> None:
         "poses", help="camera poses for a folder of photos (structure from motion, pycolmap)",
         description="Estimate the cameras of a folder of photos with COLMAP's structure from "
                     "motion (pycolmap, on the CPU), or convert the COLMAP model a folder "
-                    "already holds (sparse/0, text or binary, with its photos in images/). "
-                    "Writes a capture folder: images/ and transforms.json (nerfstudio "
-                    "layout), undistorted where the camera distorts.")
-    poses.add_argument("source", metavar="PHOTOS", help="folder of photos, or of a COLMAP model")
+                    "already holds (sparse/0, text or binary, with its photos in images/), "
+                    "or keep the poses of a capture that has them (transforms.json, or a "
+                    "Blender scene's files) and triangulate its points from them. Writes a "
+                    "capture folder: images/, transforms.json (nerfstudio layout) and the "
+                    "sparse points that splat runs start at, undistorted where the camera "
+                    "distorts.")
+    poses.add_argument("source", metavar="PHOTOS",
+                       help="folder of photos, of a COLMAP model, or a capture with poses")
     poses.add_argument("-o", "--output", required=True, metavar="CAPTURE",
                        help="capture folder to write")
     poses.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL",
@@ -39,7 +43,9 @@ def run(args) -> int:
     report = estimate_poses(args.source, args.output, args.camera_model, args.matcher,
                             args.mapper, args.force)
     total = len(report.registered) + len(report.missing)
-    print(f"registered {len(report.registered)} of {total} photos: {report.points} points, "
+    print((f"kept the poses of {total} photos, triangulated" if report.posed else
+           f"registered {len(report.registered)} of {total} photos:")
+          + f" {report.points} points, "
           f"mean reprojection error {report.reprojection_error:.2f} px"
           + (", undistorted" if report.undistorted else "")
           + "".join(f"; {phase} {s:.1f} s" for phase, s in report.seconds.items()))

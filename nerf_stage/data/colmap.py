@@ -222,6 +222,13 @@ def _world_poses(images) -> np.ndarray:
     return np.array(poses)
 
 
+def cam_from_world(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """COLMAP's world-to-camera (3, 3) rotation and (3,) translation (OpenCV axes) of a
+    (4, 4) camera-to-world ``pose`` (OpenGL axes): the inverse of ``_world_poses``."""
+    rotation = (pose[:3, :3] @ _FLIP).T
+    return rotation, -rotation @ pose[:3, 3]
+
+
 def normalisation(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The similarity ``normalised`` applies to (N, 4, 4) camera-to-world ``poses``: a point
     x goes to ``rotation @ (x - centre) / radius``. Returns (3, 3) rotation, (3,) centre and

@@ -8,7 +8,11 @@ at power-of-two offsets, as COLMAP's sequential matcher pairs video frames), map
 registers forward-moving street sequences where the incremental mapper finds no initial
 pair; incremental, COLMAP's classic, on request), and undistortion where the camera's
 distortion moves a pixel by more than ``colmap.MAX_DISTORTION``. A folder that already
-holds a COLMAP model is converted without running structure from motion. The capture is
+holds a COLMAP model is converted without running structure from motion. A capture that
+already has its poses (a ``transforms.json``, or a Blender scene's files) keeps them: its
+photos, undistorted as ``load_dataset`` reads them, are matched and its points
+triangulated from the known cameras (``triangulate_points``, COLMAP's
+``point_triangulator``), so that a splat run starts at them. The capture is
 written in nerfstudio's layout (``images/`` and ``transforms.json``, in the normalised
 frame of ``colmap.model_frames``, with its sparse points in ``sparse_pc.ply``, as
 nerfstudio names them), and the COLMAP model of its images in ``sparse/0``.
@@ -26,6 +30,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+from PIL import Image
 from tqdm import tqdm
 
 from palette_core.errors import InputError
@@ -35,6 +41,7 @@ from palette_core.outputs import check_apart, check_outdir, publish_folder
 
 from .colmap import (
     MAX_DISTORTION,
+    cam_from_world,
     distortion,
     find_model,
     import_pycolmap,
@@ -42,7 +49,8 @@ from .colmap import (
     model_points,
     read_model,
 )
-from .points import POINTS_FILE, write_points
+from .dataset import LAYOUTS, Dataset, load_dataset
+from .points import POINTS_FILE, Points, write_points
 
 MIN_PHOTOS = 3  # fewer cannot make a capture to train on
 MIN_REGISTERED = 0.5  # share of the photos that must register
@@ -70,6 +78,8 @@ class PosesReport:
     models: list[int] = field(default_factory=list)
     """Photos in each model structure from motion made, largest (the one kept) first: more
     than one when the set split."""
+    posed: bool = False
+    """The capture came with its poses, which it kept; its points were triangulated."""
 
 
 def list_photos(folder: str | os.PathLike) -> list[str]:
@@ -146,6 +156,9 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
     check_outdir(out, force)  # before minutes of work; publish_folder checks again at the end
     pycolmap = import_pycolmap()
     model = find_model(source)
+    if model is None and any(reader.holds(source) for name, reader in LAYOUTS.items()
+                             if name != "colmap"):
+        return _posed_capture(pycolmap, load_dataset(source), out, matcher, force, progress)
     photos = source / "images" if model is not None else source
     names = list_photos(photos)
     with tempfile.TemporaryDirectory(prefix="nerf-stage-poses-") as work:
@@ -203,30 +216,8 @@ def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
     InputError
         If no model could be made.
     """
-    database, cpu = work / "database.db", pycolmap.Device.cpu
-    pycolmap.set_random_seed(SEED)
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = camera_model
-    start = time.perf_counter()
-    pycolmap.Database.open(database).close()  # created empty
-    pycolmap.import_images(database, photos, pycolmap.CameraMode.SINGLE, names, reader)
-    with tqdm(total=len(names), desc="features", unit="photo", disable=not progress) as bar:
-        for i in range(0, len(names), _EXTRACT_CHUNK):
-            chunk = names[i:i + _EXTRACT_CHUNK]
-            pycolmap.extract_features(database, photos, chunk, pycolmap.CameraMode.SINGLE,
-                                      reader, device=cpu)
-            bar.update(len(chunk))
-    seconds["features"] = time.perf_counter() - start
-    start, pairs = time.perf_counter(), image_pairs(names, matcher)
-    pairing, pair_file = pycolmap.ImportedPairingOptions(), work / "pairs.txt"
-    pairing.match_list_path = pair_file
-    with tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress) as bar:
-        for i in range(0, len(pairs), _MATCH_CHUNK):
-            chunk = pairs[i:i + _MATCH_CHUNK]
-            pair_file.write_text("".join(f"{a} {b}\n" for a, b in chunk))
-            pycolmap.match_image_pairs(database, pairing_options=pairing, device=cpu)
-            bar.update(len(chunk))
-    seconds["matching"] = time.perf_counter() - start
+    database = _matched(pycolmap, photos, names, work, pycolmap.CameraMode.SINGLE,
+                        camera_model, matcher, progress, seconds)
     start = time.perf_counter()
     with tqdm(total=len(names), desc=f"{mapper} mapping", unit="photo",
               disable=not progress) as bar:
@@ -249,6 +240,123 @@ def _structure_from_motion(pycolmap, photos: Path, names: list[str], work: Path,
     largest = max(models, key=lambda k: models[k].num_reg_images())
     sizes = sorted((m.num_reg_images() for m in models.values()), reverse=True)
     return work / "sparse" / str(largest), sizes
+
+
+def _matched(pycolmap, photos: Path, names: list[str], work: Path, camera_mode,
+             camera_model: str, matcher: str, progress: bool, seconds: dict) -> Path:
+    """The database in ``work`` of the photos' SIFT features (cameras as ``camera_mode``
+    and ``camera_model`` make them) and their matches (``image_pairs``)."""
+    database, cpu = work / "database.db", pycolmap.Device.cpu
+    pycolmap.set_random_seed(SEED)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    start = time.perf_counter()
+    pycolmap.Database.open(database).close()  # created empty
+    pycolmap.import_images(database, photos, camera_mode, names, reader)
+    with tqdm(total=len(names), desc="features", unit="photo", disable=not progress) as bar:
+        for i in range(0, len(names), _EXTRACT_CHUNK):
+            chunk = names[i:i + _EXTRACT_CHUNK]
+            pycolmap.extract_features(database, photos, chunk, camera_mode, reader, device=cpu)
+            bar.update(len(chunk))
+    seconds["features"] = time.perf_counter() - start
+    start, pairs = time.perf_counter(), image_pairs(names, matcher)
+    pairing, pair_file = pycolmap.ImportedPairingOptions(), work / "pairs.txt"
+    pairing.match_list_path = pair_file
+    with tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress) as bar:
+        for i in range(0, len(pairs), _MATCH_CHUNK):
+            chunk = pairs[i:i + _MATCH_CHUNK]
+            pair_file.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+            pycolmap.match_image_pairs(database, pairing_options=pairing, device=cpu)
+            bar.update(len(chunk))
+    seconds["matching"] = time.perf_counter() - start
+    return database
+
+
+def _posed_capture(pycolmap, dataset: Dataset, out: Path, matcher: str, force: bool,
+                   progress: bool) -> PosesReport:
+    """Write the capture folder ``out`` for ``dataset``, whose poses are known: its images
+    as ``load_dataset`` read them (undistorted) in PNGs, its cameras, poses and splits in
+    ``transforms.json``, and the points triangulated from them (``triangulate_points``)."""
+    names = [f"{i:04d}.png" for i in range(len(dataset.names))]
+    with tempfile.TemporaryDirectory(prefix="nerf-stage-poses-") as work:
+        work, seconds = Path(work), {}
+        photos = work / "images"
+        photos.mkdir()
+        for name, image, alpha in zip(names, dataset.images, dataset.alpha):
+            rgba = np.concatenate([image, alpha[..., None]], -1) if (alpha < 1).any() else image
+            Image.fromarray((rgba * 255).round().astype(np.uint8)).save(photos / name)
+        database = _matched(pycolmap, photos, names, work, pycolmap.CameraMode.PER_IMAGE,
+                            "PINHOLE", matcher, progress, seconds)
+        start = time.perf_counter()
+        reconstruction = triangulate_points(pycolmap, dataset, photos, names, database, work)
+        seconds["triangulation"] = time.perf_counter() - start
+        points = reconstruction.points3D.values()
+        if not points:
+            raise InputError(f"no point could be triangulated from the {len(names)} photos of "
+                             f"{dataset.root} at their poses: they may overlap too little or "
+                             "lack texture")
+        report = PosesReport(names, [], float(reconstruction.compute_mean_reprojection_error()),
+                             len(points), dataset.lenses is not None, seconds, [len(names)],
+                             posed=True)
+        with publish_folder(out, force) as staging:
+            shutil.copytree(photos, staging / "images")
+            frames = [{"file_path": f"images/{name}",
+                       "transform_matrix": dataset.poses[i].tolist(),
+                       **_intrinsics(dataset.camera(i))} for i, name in enumerate(names)]
+            splits = {split: [f"images/{n}" for n, s in zip(names, dataset.splits) if s == split]
+                      for split in ("train", "val", "test")}
+            (staging / "transforms.json").write_text(json.dumps({
+                "camera_model": "PINHOLE", "ply_file_path": POINTS_FILE, "frames": frames,
+                **{f"{split}_filenames": files for split, files in splits.items()}}, indent=1))
+            write_points(Points(np.array([p.xyz for p in points]).reshape(-1, 3),
+                                np.array([p.color for p in points], np.float32).reshape(-1, 3)
+                                / 255), staging / POINTS_FILE)
+    return report
+
+
+def _intrinsics(camera) -> dict:
+    return {"w": camera.width, "h": camera.height, "fl_x": camera.fx, "fl_y": camera.fy,
+            "cx": camera.cx, "cy": camera.cy}
+
+
+def triangulate_points(pycolmap, dataset: Dataset, photos: Path, names: list[str],
+                       database: Path, work: Path):
+    """The pycolmap reconstruction of ``dataset``'s cameras and poses (pinhole, the images
+    ``names`` in ``photos`` at the dataset's size) with the points that COLMAP's
+    ``point_triangulator`` finds from the matches in ``database``, the poses held fixed.
+    The model is written as COLMAP's text files with the database's image and camera ids
+    (an image a camera, ``CameraMode.PER_IMAGE``)."""
+    db = pycolmap.Database.open(database)
+    ids = {image.name: (image.image_id, image.camera_id) for image in db.read_all_images()}
+    db.close()
+    model = work / "known"
+    model.mkdir()
+    cameras, images = [], []
+    for i, name in enumerate(names):
+        image_id, camera_id = ids[name]
+        c = dataset.camera(i)
+        cameras.append(f"{camera_id} PINHOLE {c.width} {c.height} {_numbers(c.fx, c.fy, c.cx, c.cy)}\n")
+        rotation, translation = cam_from_world(dataset.poses[i])
+        images.append(f"{image_id} {_numbers(*_quaternion(rotation), *translation)} {camera_id} "
+                      f"{name}\n\n")
+    (model / "cameras.txt").write_text("".join(cameras))
+    (model / "images.txt").write_text("".join(images))
+    (model / "points3D.txt").write_text("")
+    (work / "triangulated").mkdir()
+    return pycolmap.triangulate_points(pycolmap.Reconstruction(model), database, photos,
+                                       work / "triangulated", clear_points=True)
+
+
+def _quaternion(rotation: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) unit quaternion of a (3, 3) rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    return np.roll(Rotation.from_matrix(rotation).as_quat(), 1)
+
+
+def _numbers(*values) -> str:
+    """``values`` for a COLMAP text file, each to float64's full precision."""
+    return " ".join(repr(float(v)) for v in values)
 
 
 def _undistort(pycolmap, model: Path, photos: Path, names: list[str], work: Path,
