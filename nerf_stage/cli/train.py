@@ -48,6 +48,9 @@ def run(args) -> int:
     dataset, log = done.dataset, done.run.record.log
     print(f"dataset: {dataset.root} ({dataset.layout} layout, {len(dataset.names)} frames, "
           f"{len(dataset.indices('train'))} for training)")
+    if config.backbone == "splats" and dataset.points is None:
+        print(f"the splats started without sparse points (the capture has none): nerf-stage "
+              f"poses {dataset.root} -o CAPTURE triangulates them from its poses")
     print(f"weights: {done.weights}")
     limited = " (the --minutes limit)" if len(log) < config.total_iters else ""
     print(f"trained {config.backbone} ({config.strategy}) for {len(log)} iterations in "
