@@ -335,7 +335,8 @@ def triangulate_points(pycolmap, dataset: Dataset, photos: Path, names: list[str
     for i, name in enumerate(names):
         image_id, camera_id = ids[name]
         c = dataset.camera(i)
-        cameras.append(f"{camera_id} PINHOLE {c.width} {c.height} {_numbers(c.fx, c.fy, c.cx, c.cy)}\n")
+        cameras.append(f"{camera_id} PINHOLE {c.width} {c.height} "
+                       f"{_numbers(c.fx, c.fy, c.cx, c.cy)}\n")
         rotation, translation = cam_from_world(dataset.poses[i])
         images.append(f"{image_id} {_numbers(*_quaternion(rotation), *translation)} {camera_id} "
                       f"{name}\n\n")
