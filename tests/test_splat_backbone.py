@@ -321,6 +321,25 @@ def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, 
     assert load_run(tmp_path / "a").record.iteration == 12
 
 
+def test_a_splat_run_takes_the_space_a_grid_probe_finds(still_life, tmp_path, monkeypatch):
+    """``--space auto`` on transparent images probes both spaces with the grid NeRF, as a
+    grid run does: where the scene ends does not depend on the backbone."""
+    from nerf_stage.train import trainer
+
+    probed = []
+
+    def probe(config, box, *args):
+        probed.append((box.unbounded, config.backbone))
+        return 20.0 + 7.0 * box.unbounded
+
+    monkeypatch.setattr(trainer, "_probe", probe)
+    flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "4", "--finetune-iters", "2",
+             "--splats-initial", "32", "--splats-patch", "6"]
+    assert main(["train", str(still_life), "-o", str(tmp_path / "run"), *flags]) == 0
+    assert probed == [(False, "grid"), (True, "grid")]
+    assert load_run(tmp_path / "run").box.unbounded
+
+
 def _before_the_palette_stage(run):
     """The run with its geometry in an RGB model, as its palette stage found it."""
     tensors = {name: getattr(run.model, name).detach().clone() for name in GEOMETRY}

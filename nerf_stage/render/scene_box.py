@@ -101,7 +101,7 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     them), and contracts the rest of space around it; ``box`` ends the scene there and, when the
     images have transparent pixels, shrinks the box to the visual hull carved from them;
     ``auto`` is ``unbounded`` when every pixel is opaque (no view shows where the scene
-    ends), else ``box`` (training may still probe both: ``trainer._scene_box``).
+    ends), else ``box`` (training may still probe both: ``trainer.choose_scene_box``).
 
     Raises
     ------

@@ -46,7 +46,7 @@ from ..data.points import Points
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB, inverse_tone_map, tone_map
 from ..render.contraction import EXTENT
 from ..render.samples import KEEP_WEIGHT, PixelSamples
-from ..render.scene_box import SceneBox, scene_box, visual_hull
+from ..render.scene_box import SceneBox, visual_hull
 from ..train.appearance import Appearance, exposure_free_weights
 from ..train.config import Strategy, TrainConfig
 from ..train.losses import recorded_rgb_loss, ssim_loss, weight_loss
@@ -60,7 +60,13 @@ from ..train.run import (
     run_fields,
     write_checkpoint,
 )
-from ..train.trainer import load_optimisers, next_iteration, stage_progress, training_targets
+from ..train.trainer import (
+    choose_scene_box,
+    load_optimisers,
+    next_iteration,
+    stage_progress,
+    training_targets,
+)
 from .model import Splats, covariances, with_residual
 from .rasterise import draw
 from .sh import SH_C0, sh_basis, sh_terms
@@ -295,8 +301,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     if resume:
         run = _from_state(state, str(rundir / CHECKPOINT), device)
     else:
-        box = scene_box(dataset.poses[train_ids], dataset.cameras(train_ids),
-                        dataset.alpha[train_ids], config.space)
+        box = choose_scene_box(config, dataset, stack, train_ids, weights, device, progress)
         generator = torch.Generator().manual_seed(config.seed)
         channels = n_terms(len(stack.palette), stack.basis, stack.order)
         record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,

@@ -125,7 +125,7 @@ class TrainConfig:
     """``box``: the scene ends in a box around what the cameras see; ``unbounded``: what lies
     beyond it is contracted into a shell (mip-NeRF 360); ``auto``: ``unbounded`` when every
     training pixel is opaque, else ``box`` unless a short probe fits far better unbounded
-    (``scene_box.scene_box``, ``trainer._scene_box``)."""
+    (``scene_box.scene_box``, ``trainer.choose_scene_box``)."""
     seed: int = 0
     """Seed of the weight initialisation, ray batches and sample jitter."""
     checkpoint_every: int = 500

@@ -58,7 +58,7 @@ from .run import (
     save_checkpoint,
 )
 
-#: ``--space auto`` on images with transparent pixels (``_scene_box``): iterations of each
+#: ``--space auto`` on images with transparent pixels (``choose_scene_box``): iterations of each
 #: space's probe, pixels it is scored on, and by how many dB the unbounded probe must beat
 #: the box's to be chosen.
 PROBE_ITERS = 150
@@ -152,7 +152,7 @@ def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: st
     stack = replace(stack, weights=[])  # the stack's own maps (full-size) can be freed now
     train_ids = dataset.indices("train")
     box = (box_from_dict(state["box"], str(rundir / CHECKPOINT)) if resume else
-           _scene_box(config, dataset, stack, train_ids, weights, device, progress))
+           choose_scene_box(config, dataset, stack, train_ids, weights, device, progress))
     run = _new_run(config, box, dataset, stack, train_ids, device)
     run.record.weights = weights_path
     _check_fits(weights, config.supersampling, device)
@@ -292,13 +292,15 @@ def _step(run: Run, optimisers: list, rays: dict, terms, background, generator, 
     return loss, psnr
 
 
-def _scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, train_ids,
-               weights, device, progress: bool) -> SceneBox:
-    """Where the scene ends (``scene_box.scene_box``): as ``config.space`` says, and for
-    ``auto`` on images with transparent pixels, the box unless a short RGB probe of
-    ``PROBE_ITERS`` iterations in each space fits the training pixels at least
-    ``PROBE_MARGIN`` dB better unbounded: a ground that runs on under an open sky has
-    transparent pixels too, and no box holds it (docs/nerf.md, "Choosing the space")."""
+def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, train_ids,
+                     weights, device, progress: bool) -> SceneBox:
+    """Where the scene ends (``scene_box.scene_box``), for every backbone: as
+    ``config.space`` says, and for ``auto`` on images with transparent pixels, the box
+    unless a short RGB probe of ``PROBE_ITERS`` iterations in each space fits the training
+    pixels at least ``PROBE_MARGIN`` dB better unbounded: a ground that runs on under an
+    open sky has transparent pixels too, and no box holds it (docs/nerf.md, "Choosing the
+    space"). The probe is a NeRF of the run's backbone, or the grid's for a backbone that
+    is not a field: where the scene ends does not depend on what draws it."""
     poses, cameras, alpha = (dataset.poses[train_ids], dataset.cameras(train_ids),
                              dataset.alpha[train_ids])
     box = scene_box(poses, cameras, alpha, config.space)
@@ -306,8 +308,9 @@ def _scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, train_
         return box
     unbounded = scene_box(poses, cameras, alpha, Space.UNBOUNDED)
     iters = min(PROBE_ITERS, config.total_iters)
-    probe = replace(config, strategy=Strategy.RGB, pretrain_iters=iters, finetune_iters=0,
-                    appearance=False)
+    field = config.backbone if BACKBONES[config.backbone].is_field else "grid"
+    probe = replace(config, backbone=field, strategy=Strategy.RGB, pretrain_iters=iters,
+                    finetune_iters=0, appearance=False)
     fits = [_probe(probe, candidate, dataset, stack, train_ids, weights, device, progress)
             for candidate in (box, unbounded)]
     return unbounded if fits[1] >= fits[0] + PROBE_MARGIN else box
