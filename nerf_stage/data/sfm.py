@@ -12,10 +12,11 @@ holds a COLMAP model is converted without running structure from motion. A captu
 already has its poses (a ``transforms.json``, or a Blender scene's files) keeps them: its
 photos, undistorted as ``load_dataset`` reads them, are matched and its points
 triangulated from the known cameras (``triangulate_points``, COLMAP's
-``point_triangulator``), so that a splat run starts at them. The capture is
-written in nerfstudio's layout (``images/`` and ``transforms.json``, in the normalised
-frame of ``colmap.model_frames``, with its sparse points in ``sparse_pc.ply``, as
-nerfstudio names them), and the COLMAP model of its images in ``sparse/0``.
+``point_triangulator``), so that a splat run starts at them, in the frame of its poses.
+Any other capture is written in nerfstudio's layout (``images/`` and ``transforms.json``,
+in the normalised frame of ``colmap.model_frames``, with its sparse points in
+``sparse_pc.ply``, as nerfstudio names them), and the COLMAP model of its images in
+``sparse/0``.
 docs/capture.md.
 """
 
@@ -315,6 +316,7 @@ def _posed_capture(pycolmap, dataset: Dataset, out: Path, matcher: str, force: b
 
 
 def _intrinsics(camera) -> dict:
+    """A frame's camera in ``transforms.json``'s fields."""
     return {"w": camera.width, "h": camera.height, "fl_x": camera.fx, "fl_y": camera.fy,
             "cx": camera.cx, "cy": camera.cy}
 
