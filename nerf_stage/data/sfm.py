@@ -13,10 +13,10 @@ already has its poses (a ``transforms.json``, or a Blender scene's files) keeps 
 photos, undistorted as ``load_dataset`` reads them, are matched and its points
 triangulated from the known cameras (``triangulate_points``, COLMAP's
 ``point_triangulator``), so that a splat run starts at them, in the frame of its poses.
-Any other capture is written in nerfstudio's layout (``images/`` and ``transforms.json``,
-in the normalised frame of ``colmap.model_frames``, with its sparse points in
-``sparse_pc.ply``, as nerfstudio names them), and the COLMAP model of its images in
-``sparse/0``.
+Every capture is written in nerfstudio's layout (``images/`` and ``transforms.json``,
+with its sparse points in ``sparse_pc.ply``, as nerfstudio names them); one made from
+photos or a model is in the normalised frame of ``colmap.model_frames``, with the COLMAP
+model of its images in ``sparse/0``.
 docs/capture.md.
 """
 
