@@ -211,15 +211,30 @@ def _photos(folder, sizes, rng) -> None:
         Image.fromarray(rng.integers(0, 255, (h, w, 3), np.uint8)).save(folder / f"{i}.png")
 
 
+def _posed(folder, n, rng) -> None:
+    """A nerfstudio capture of ``n`` noise photos with poses around the origin."""
+    _photos(folder / "images", [(96, 72)] * n, rng)
+    (folder / "transforms.json").write_text(json.dumps({
+        "w": 96, "h": 72, "fl_x": 80.0, "fl_y": 80.0, "cx": 48.0, "cy": 36.0,
+        "frames": [{"file_path": f"images/{i}.png", "transform_matrix":
+                    look_at([np.sin(i), 0.2, np.cos(i)], [0, 0, 0]).tolist()}
+                   for i in range(n)]}))
+
+
 @pytest.mark.parametrize("case, message", [
     ("one photo", "needs at least 3"),
     ("sizes", "different sizes"),
     ("not photos", "not photos"),
     ("noise", "overlap too little"),
+    ("posed, two photos", "needs at least 3"),
+    ("posed noise", "no point could be triangulated"),
 ])
 def test_bad_photo_folders_are_one_line(case, message, tmp_path, capsys):
     rng, photos = np.random.default_rng(1), tmp_path / "photos"
-    if case == "one photo":
+    if case.startswith("posed"):
+        photos.mkdir()
+        _posed(photos, 2 if "two" in case else 4, rng)
+    elif case == "one photo":
         _photos(photos, [(64, 48)], rng)
     elif case == "sizes":
         _photos(photos, [(64, 48), (64, 48), (48, 64)], rng)

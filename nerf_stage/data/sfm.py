@@ -146,8 +146,9 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
     ------
     InputError
         Bad photos (``list_photos``), a model that cannot be read, fewer than
-        ``MIN_REGISTERED`` of the photos registered, an ``out`` among the photos or not
-        empty (without ``force``); nothing is written then.
+        ``MIN_REGISTERED`` of the photos registered, a posed capture of fewer than
+        ``MIN_PHOTOS`` photos or without a point to triangulate, an ``out`` among the photos
+        or not empty (without ``force``); nothing is written then.
     """
     if camera_model not in CAMERA_MODELS or matcher not in MATCHERS or mapper not in MAPPERS:
         raise InputError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, matcher one "
@@ -279,6 +280,9 @@ def _posed_capture(pycolmap, dataset: Dataset, out: Path, matcher: str, force: b
     as ``load_dataset`` read them (undistorted) in PNGs, its cameras, poses and splits in
     ``transforms.json``, and the points triangulated from them (``triangulate_points``)."""
     names = [f"{i:04d}.png" for i in range(len(dataset.names))]
+    if len(names) < MIN_PHOTOS:
+        raise InputError(f"{dataset.root} holds {len(names)} photo(s); triangulation needs at "
+                         f"least {MIN_PHOTOS}")
     with tempfile.TemporaryDirectory(prefix="nerf-stage-poses-") as work:
         work, seconds = Path(work), {}
         photos = work / "images"
