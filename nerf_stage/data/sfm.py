@@ -304,7 +304,7 @@ def _posed_capture(pycolmap, dataset: Dataset, out: Path, matcher: str, force: b
                              len(points), dataset.lenses is not None, seconds, [len(names)],
                              posed=True)
         with publish_folder(out, force) as staging:
-            shutil.copytree(photos, staging / "images")
+            shutil.move(photos, staging / "images")  # the PNGs written above
             frames = [{"file_path": f"images/{name}",
                        "transform_matrix": dataset.poses[i].tolist(),
                        **_intrinsics(dataset.camera(i))} for i, name in enumerate(names)]
