@@ -34,7 +34,8 @@ the same ``image_scores`` as ours.
     python benchmarks/bench_captures.py ROOT [--out benchmarks/out/captures]
         [--captures fox lund sceaux monstree] [--minutes 20] [--downscale 4]
         [--methods palette rgb nerfacto] [--backbone grid|hash|splats]
-        [--curve-points 10] [--nerfacto-venv benchmarks/out/nerfacto-venv]
+        [--curve-points 10] [--train-options '--batch-rays 16384']
+        [--nerfacto-venv benchmarks/out/nerfacto-venv]
 
 Writes ``OUT/results.json``, ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
 absolute error x4) and ``OUT/NAME-curve.png`` (held-out PSNR against training time: our
@@ -47,6 +48,7 @@ import argparse
 import json
 import os
 import re
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -194,11 +196,11 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
 
 
 def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: float,
-         curve_points: int = 10) -> dict:
+         curve_points: int = 10, options: tuple[str, ...] = ()) -> dict:
     """Train our NeRF (``backbone``) on ``data_dir`` within ``seconds``; its renders of the
     held-out views, iterations, training seconds, peak memory and held-out PSNR against
     training time (``curve``: seconds and dB of about ``curve_points`` checkpoints; 0: the
-    end alone).
+    end alone); ``options``: more of ``nerf-stage train``'s, for the probe and the run.
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget, its learning
     rates then decayed as at the stage's last iteration. The iterations come from the rate
@@ -212,7 +214,8 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
     if not (run_dir / "checkpoint.pt").is_file():
         run_dir.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
-            _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0)
+            _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0,
+                   options=options)
             probed = load_run(Path(probe) / "run").record.log
         probed = probed[len(probed) // 2:]
         rate = (len(probed) - 1) / (probed[-1]["seconds"] - probed[0]["seconds"])
@@ -220,7 +223,8 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
         with Snapshots(run_dir / "checkpoint.pt", snapshots):
             _train(data_dir, run_dir, strategy, backbone,
                    expected * HEADROOM[BACKBONES[backbone].is_field], seconds / 60,
-                   every=max(1, round(expected / max(1, curve_points))), log=log)
+                   every=max(1, round(expected / max(1, curve_points))), log=log,
+                   options=options)
     curve = []
     for path in sorted(snapshots.glob("*.pt")) if curve_points else ():
         with tempfile.TemporaryDirectory(dir=snapshots) as folder:
@@ -284,16 +288,17 @@ def _version(path: Path) -> tuple[int, int]:
 
 
 def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iterations: float,
-           minutes: float, every: int = 500, log: Path | None = None) -> str:
+           minutes: float, every: int = 500, log: Path | None = None,
+           options: tuple[str, ...] = ()) -> str:
     """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them,
-    within ``minutes`` (0: no limit), with a checkpoint ``every`` so many iterations; its
-    output (``_run``)."""
+    within ``minutes`` (0: no limit), with a checkpoint ``every`` so many iterations and
+    more ``options``; its output (``_run``)."""
     total = max(2, round(iterations))
     pretrain = max(1, round(total * PRETRAIN_SHARE))
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--backbone", backbone,
                  "--pretrain-iters", str(pretrain), "--finetune-iters", str(total - pretrain),
-                 "--minutes", str(minutes), "--checkpoint-every", str(every)],
+                 "--minutes", str(minutes), "--checkpoint-every", str(every), *options],
                 f"train {strategy}", log)
 
 
@@ -406,6 +411,10 @@ def main() -> None:
     parser.add_argument("--undistorted-beforehand", action="store_true",
                         help="benchmark NAME-undistorted beside each posed capture with a "
                              "lens: its photos undistorted by COLMAP, not by us")
+    parser.add_argument("--train-options", type=shlex.split, default=(),
+                        help="more options of nerf-stage train for our runs, in one string "
+                             "(e.g. '--batch-rays 16384'; runs are cached by method: give "
+                             "such runs their own --out)")
     parser.add_argument("--nerfacto-venv", type=Path,
                         default=Path("benchmarks/out/nerfacto-venv"))
     args = parser.parse_args()
@@ -435,7 +444,7 @@ def main() -> None:
                     method = f"{method}-{args.backbone}"
                 strategy = "two-stage" if method.startswith("palette") else "rgb"
                 result = ours(data_dir, folder / method, strategy, args.backbone, seconds,
-                              args.curve_points)
+                              args.curve_points, tuple(args.train_options))
             render = result.pop("render")
             result.update(image_scores(render, truth), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",

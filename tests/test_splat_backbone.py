@@ -538,3 +538,26 @@ def test_a_capture_with_sparse_points_starts_its_splats_there():
     colours = SH_C0 * start["colours"].numpy() + 0.5
     assert np.allclose(colours, points.colours[nearest], atol=1e-5)
     assert len(set(nearest.tolist())) == 30 and start["colours_rest"].shape == (30, 8, 3)
+
+
+def test_sparse_points_near_a_camera_start_no_wider_than_the_reach_allows():
+    """Points far apart start as wide as their neighbours are far, except where that would
+    draw them past ``--splats-reach`` in the nearest view: there at most ``widest`` times
+    their distance to it, so that no starting splat is cut off square."""
+    from nerf_stage.data.points import Points
+    from nerf_stage.render.scene_box import SceneBox
+    from nerf_stage.splats.backbone import initial_splats
+
+    box = SceneBox(np.zeros(3), np.ones(3))
+    positions = np.array([[0.0, 0, 0], [0.9, 0, 0], [0, 0.9, 0], [0, 0, 0.9], [0.9, 0.9, 0.9]])
+    points = Points(positions, np.full((5, 3), 0.5))
+    eyes = np.array([[0.0, 0, 2], [0, 0, -5]])
+    free = initial_splats(box, 5, 0, torch.Generator().manual_seed(0), points=points)
+    capped = initial_splats(box, 5, 0, torch.Generator().manual_seed(0), points=points, eyes=eyes,
+                            widest=0.05)
+    means = capped["means"].numpy()
+    nearest = np.linalg.norm(means[:, None] - eyes[None], axis=2).min(1)
+    width = np.exp(capped["scales"].numpy()[:, 0])
+    assert np.allclose(width, np.minimum(np.exp(free["scales"].numpy()[:, 0]), 0.05 * nearest),
+                       rtol=1e-5)
+    assert (width < np.exp(free["scales"].numpy()[:, 0])).all()

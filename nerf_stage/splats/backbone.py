@@ -80,6 +80,10 @@ PIXELS_PER_INITIAL = 4
 MIN_POINTS = 4  # a capture with fewer sparse points starts at random
 HULL_CELLS = 64  # along each side of the box: the visual hull that bounded scenes start in
 FAR_SHELL = 1.9  # far splats start in the contracted shell out to this (10 box half sizes)
+#: A starting splat's standard deviation in its nearest training view is at most this share
+#: of ``--splats-reach``: its ellipse to 1/255 (2.5 deviations at ``INITIAL_OPACITY``) spans
+#: half the reach, so that no starting splat is cut off square (sparse points are far apart).
+START_REACH = 0.2
 #: Bytes of frozen footprints the palette stage keeps (``_footprints``): views past them
 #: are drawn again at each visit.
 FOOTPRINT_BYTES = 512 << 20
@@ -242,12 +246,14 @@ def normalised_pose(pose: np.ndarray, box: SceneBox, device) -> torch.Tensor:
 
 
 def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generator,
-                   hull: np.ndarray | None = None, points: Points | None = None) -> dict:
+                   hull: np.ndarray | None = None, points: Points | None = None,
+                   eyes: np.ndarray | None = None, widest: float = math.inf) -> dict:
     """Splats to start from, ``INITIAL_OPACITY`` opaque, as wide as the mean distance to
-    their three nearest neighbours, with colours of ``degree``: at most ``n`` of
-    the capture's ``points`` in their colours (3D Gaussian splatting's start), or else ``n``
-    grey ones at random in the box (in its ``hull`` cells (X, Y, Z) when given; half of
-    them, in an unbounded scene, in its contracted shell out to ``FAR_SHELL``)."""
+    their three nearest neighbours (at most ``widest`` times their distance to the nearest
+    of the (N, 3) normalised camera centres ``eyes``), with colours of ``degree``: at most
+    ``n`` of the capture's ``points`` in their colours (3D Gaussian splatting's start), or
+    else ``n`` grey ones at random in the box (in its ``hull`` cells (X, Y, Z) when given;
+    half of them, in an unbounded scene, in its contracted shell out to ``FAR_SHELL``)."""
     if points is not None:
         pick = torch.randperm(len(points), generator=generator)[:n].numpy()
         means = torch.as_tensor((points.positions[pick] - box.centre) / box.scale,
@@ -256,8 +262,10 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
     else:
         means = _random_means(box, n, generator, hull)
         colours = torch.zeros(n, 3)
-    distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:]
-    scale = np.log(np.maximum(distance.mean(1), 1e-7))
+    distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:].mean(1)
+    if eyes is not None:
+        distance = np.minimum(distance, widest * cKDTree(eyes).query(means.numpy())[0])
+    scale = np.log(np.maximum(distance, 1e-7))
     n = len(means)
     return {"means": means, "scales": torch.as_tensor(scale, dtype=torch.float32)[:, None]
             .repeat(1, 3), "quats": torch.tensor([1.0, 0, 0, 0]).repeat(n, 1),
@@ -316,8 +324,12 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         if points is None and not box.unbounded and (dataset.alpha[train_ids] < 1).any():
             hull = visual_hull(box, np.full(3, HULL_CELLS), dataset.poses[train_ids],
                                dataset.cameras(train_ids), dataset.alpha[train_ids])
+        eyes = np.stack([normalised_pose(p, box, "cpu")[:3, 3].numpy()
+                         for p in dataset.poses[train_ids]])
+        focal = max(max(c.fx, c.fy) for c in dataset.cameras(train_ids))
         model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, hull,
-                                          points), RGB, settings.sh_degree)
+                                          points, eyes, START_REACH * settings.reach / focal),
+                           RGB, settings.sh_degree)
         run = SplatRun(config, box, dataset.intrinsics, np.asarray(stack.palette, np.float64),
                        stack.basis, stack.order, record, model.to(device))
     run.record.weights = weights_path

@@ -32,7 +32,9 @@ from .config import BAKE_FACTOR, TrainConfig
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
-RENDER_CHUNK = 1 << 15  # rays per forward pass when rendering whole views
+#: Rays per forward pass when rendering whole views, by device type: on the CPU larger
+#: chunks run slower (docs/real_photos.md); a GPU marches a half-size photo's rays at once.
+RENDER_CHUNK = {"cpu": 1 << 15, "cuda": 1 << 19}
 _CHECKPOINT_KEYS = ("iteration", "config", "field", "output", "optimisers", "generator",
                     "box", "intrinsics", "palette", "basis", "order", "meta", "log")
 
@@ -201,6 +203,7 @@ class Run(RunBase):
         cameras = (intrinsics if isinstance(intrinsics, list)
                    else [intrinsics or self.intrinsics] * len(poses))
         rays = self.config.supersampling ** 2
+        chunk_rays = RENDER_CHUNK.get(device.type, RENDER_CHUNK["cpu"])
         values, accs, kept = [], [], []
         for view, (pose, camera) in enumerate(tqdm(zip(poses, cameras), desc="render",
                                                    unit="view", total=len(poses),
@@ -209,8 +212,8 @@ class Run(RunBase):
             origins, directions = normalised_rays(pose, camera, self.box, device,
                                                   self.config.supersampling)
             outputs = []
-            for start in range(0, origins.shape[0] * rays, RENDER_CHUNK):
-                o, d = (x.flatten(0, 1)[start:start + RENDER_CHUNK] for x in (origins, directions))
+            for start in range(0, origins.shape[0] * rays, chunk_rays):
+                o, d = (x.flatten(0, 1)[start:start + chunk_rays] for x in (origins, directions))
                 v, chunk = render_rays(self.field, self.occupancy, o, d, self.render_sampling)
                 outputs.append((v, chunk.opacity))
                 if samples:
