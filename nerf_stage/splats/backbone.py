@@ -80,9 +80,9 @@ PIXELS_PER_INITIAL = 4
 MIN_POINTS = 4  # a capture with fewer sparse points starts at random
 HULL_CELLS = 64  # along each side of the box: the visual hull that bounded scenes start in
 FAR_SHELL = 1.9  # far splats start in the contracted shell out to this (10 box half sizes)
-#: A starting splat's standard deviation in its nearest training view is at most this share
-#: of ``--splats-reach``: its ellipse to 1/255 (2.5 deviations at ``INITIAL_OPACITY``) spans
-#: half the reach, so that no starting splat is cut off square (sparse points are far apart).
+#: A splat started at a sparse point has a standard deviation in its nearest training view
+#: of at most this share of ``--splats-reach``: its ellipse to 1/255 (2.5 deviations at
+#: ``INITIAL_OPACITY``) spans half the reach, so that none starts cut off square.
 START_REACH = 0.2
 #: Bytes of frozen footprints the palette stage keeps (``_footprints``): views past them
 #: are drawn again at each visit.
@@ -249,11 +249,13 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
                    hull: np.ndarray | None = None, points: Points | None = None,
                    eyes: np.ndarray | None = None, widest: float = math.inf) -> dict:
     """Splats to start from, ``INITIAL_OPACITY`` opaque, as wide as the mean distance to
-    their three nearest neighbours (at most ``widest`` times their distance to the nearest
-    of the (N, 3) normalised camera centres ``eyes``), with colours of ``degree``: at most
-    ``n`` of the capture's ``points`` in their colours (3D Gaussian splatting's start), or
-    else ``n`` grey ones at random in the box (in its ``hull`` cells (X, Y, Z) when given;
-    half of them, in an unbounded scene, in its contracted shell out to ``FAR_SHELL``)."""
+    their three nearest neighbours, with colours of ``degree``: at most ``n`` of the
+    capture's ``points`` in their colours (3D Gaussian splatting's start; sparse points
+    may lie far apart, so these are at most ``widest`` times their distance to the nearest
+    of the (N, 3) normalised camera centres ``eyes``), or else ``n`` grey ones at random in
+    the box, as close together as a view's pixels allow (in its ``hull`` cells (X, Y, Z)
+    when given; half of them, in an unbounded scene, in its contracted shell out to
+    ``FAR_SHELL``)."""
     if points is not None:
         pick = torch.randperm(len(points), generator=generator)[:n].numpy()
         means = torch.as_tensor((points.positions[pick] - box.centre) / box.scale,
@@ -263,7 +265,7 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
         means = _random_means(box, n, generator, hull)
         colours = torch.zeros(n, 3)
     distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:].mean(1)
-    if eyes is not None:
+    if points is not None and eyes is not None:
         distance = np.minimum(distance, widest * cKDTree(eyes).query(means.numpy())[0])
     scale = np.log(np.maximum(distance, 1e-7))
     n = len(means)
