@@ -54,6 +54,22 @@ def test_additive_renders_sum_to_the_opacity(still_life, tmp_path):
     assert np.allclose(weights.sum(-1), opacity, atol=1e-5)
 
 
+def test_a_render_is_the_same_in_any_chunk_of_rays(still_life, tmp_path, monkeypatch):
+    """``RENDER_CHUNK`` (rays a forward pass, by device) changes how a view is cut up,
+    not what it shows: a chunk of 37 rays (a view's 256 in seven, the last short) renders
+    what one chunk does, samples included."""
+    from nerf_stage.train import run as run_module
+
+    run = trained(still_life, tiny_config(), tmp_path / "run")
+    poses = load_dataset(still_life).poses[:2]
+    whole = run.render(poses, samples=True)
+    monkeypatch.setitem(run_module.RENDER_CHUNK, "cpu", 37)
+    cut = run.render(poses, samples=True)
+    assert np.allclose(whole[0], cut[0], atol=1e-6) and np.allclose(whole[1], cut[1], atol=1e-6)
+    for name in ("pixel", "point", "weight"):
+        assert np.allclose(getattr(whole[2], name), getattr(cut[2], name), atol=1e-6)
+
+
 def test_a_supersampled_pixel_is_the_mean_of_a_finer_cameras_pixels(still_life, tmp_path):
     """With n = 2 a pixel averages the rays a camera of twice the resolution has through the
     centres of its 2 x 2 sub-pixels; additive weights still sum to the opacity."""
