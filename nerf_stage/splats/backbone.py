@@ -326,8 +326,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         if points is None and not box.unbounded and (dataset.alpha[train_ids] < 1).any():
             hull = visual_hull(box, np.full(3, HULL_CELLS), dataset.poses[train_ids],
                                dataset.cameras(train_ids), dataset.alpha[train_ids])
-        eyes = np.stack([normalised_pose(p, box, "cpu")[:3, 3].numpy()
-                         for p in dataset.poses[train_ids]])
+        eyes = (dataset.poses[train_ids, :3, 3] - box.centre) / box.scale
         focal = max(max(c.fx, c.fy) for c in dataset.cameras(train_ids))
         model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, hull,
                                           points, eyes, START_REACH * settings.reach / focal),
