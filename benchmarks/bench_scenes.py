@@ -5,15 +5,16 @@ path tracer: PSNR and SSIM of held-out views on the training path (``val``) and 
 For each scene: render it (once; ``blender -b --factory-startup -P SCRIPT -- DIR``), measure
 the noise floor (the held-out views against the same views rendered under another sampler
 seed, ``val_seed2/`` and ``test_seed2/``), decompose its training views (``palette-decompose
--k 6``), then train per ``--spaces`` x ``--strategies`` and score the held-out views,
-saving an error map of each run's first test views (``OUT/SCENE-SPACE-STRATEGY.png``:
-truth, render, absolute error x4).
+-k 6``), then train per ``--backbones`` x ``--spaces`` x ``--strategies`` and score the held-out
+views, saving an error map of each run's first test views
+(``OUT/SCENE-SPACE-STRATEGY[-BACKBONE].png``: truth, render, absolute error x4).
 
     python benchmarks/bench_scenes.py [--out benchmarks/out/scenes] [--scenes garden ...]
-        [--spaces auto] [--strategies two-stage rgb] [--iters P F]
+        [--backbones grid splats] [--minutes 4] [--spaces auto]
+        [--strategies two-stage rgb] [--iters P F]
 
-Needs Debian's ``blender`` (or PyPI's ``bpy``); runs are cached in OUT by scene, space and
-strategy (delete a run folder to train it again).
+Needs Debian's ``blender`` (or PyPI's ``bpy``); runs are cached in OUT by scene, space, strategy
+and backbone (delete a run folder to train it again).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from nerf_stage.backbones import BACKBONES
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.edit.editing import WeightRender
 from nerf_stage.fields import RGB
@@ -108,6 +110,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/scenes"))
     parser.add_argument("--scenes", nargs="+",
                         default=sorted(p.stem for p in SCENES.glob("[!_]*.py")))
+    parser.add_argument("--backbones", nargs="+", default=["grid"], choices=BACKBONES)
+    parser.add_argument("--minutes", type=float, default=0.0,
+                        help="training time limit of each run (0: none)")
     parser.add_argument("--spaces", nargs="+", default=["auto"])
     parser.add_argument("--strategies", nargs="+", default=["two-stage", "rgb"])
     parser.add_argument("--iters", type=int, nargs=2, default=None, metavar=("P", "F"))
@@ -125,12 +130,13 @@ def main() -> None:
         floor = {split: noise_floor(data, split) for split in SPLITS}
         print(f"{name}: noise floor " + ", ".join(f"{s} {floor[s]['psnr']:.2f} dB"
                                                   for s in SPLITS), flush=True)
-        for space, strategy, appearance in itertools.product(args.spaces, args.strategies,
-                                                             args.appearance):
+        for backbone, space, strategy, appearance in itertools.product(
+                args.backbones, args.spaces, args.strategies, args.appearance):
             iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
-            config = TrainConfig(space=space, strategy=strategy,
-                                 appearance=appearance == "on", **iters)
-            label = f"{name}-{space}-{strategy}" + ("-appearance" * config.appearance)
+            config = TrainConfig(backbone=backbone, space=space, strategy=strategy,
+                                 appearance=appearance == "on", minutes=args.minutes, **iters)
+            label = (f"{name}-{space}-{strategy}" + ("-appearance" * config.appearance)
+                     + (f"-{backbone}" if backbone != "grid" else ""))
             run_dir = args.out / label
             if not (run_dir / "checkpoint.pt").exists():
                 train(config, data, stack, run_dir, force=True)
