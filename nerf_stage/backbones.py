@@ -152,7 +152,8 @@ class SplatConfig:
     pixels of a training image; and in the contracted shell around an unbounded box: far
     splats for what lies beyond)."""
     max_splats: int = 300_000
-    """Densification never grows the splats beyond this."""
+    """Densification never grows the splats beyond this, nor beyond one for three training
+    pixels (``strategy.PIXELS_PER_SPLAT``)."""
     sh_degree: int = 3
     """Degree of the spherical harmonics of the view-dependent colour (RGB stage) and of the
     weights' view-dependent residual (palette stage); 0: diffuse."""

@@ -19,13 +19,14 @@ from nerf_stage.splats.backbone import GEOMETRY, SplatModel  # noqa: E402
 from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
 from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
-from nerf_stage.splats.strategy import Densification  # noqa: E402
+from nerf_stage.splats.strategy import PIXELS_PER_SPLAT, Densification  # noqa: E402
 from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
 from .helpers import expect_error  # noqa: E402
 
+PIXELS = 10**6  # training pixels in all: no bound on the splats
 CAMERA = Intrinsics(width=12, height=10, fx=14.0, fy=14.0, cx=6.0, cy=5.0)
 POSE = torch.as_tensor(look_at(np.array([0.0, 0.0, 3.0]), np.zeros(3)), dtype=torch.float64)
 
@@ -195,7 +196,7 @@ def test_densification_clones_splits_and_prunes_within_the_bounds():
     means, scales = model.means.detach().clone(), model.scales.detach().clone()
     info = {"means2d": torch.zeros(10, 2), "front": torch.arange(10), "drawn": torch.arange(10)}
     info["means2d"].grad = torch.arange(1.0, 11.0)[:, None].repeat(1, 2) * 1e-3
-    control = Densification.for_stage(settings, 1.0, 200)
+    control = Densification.for_stage(settings, 1.0, 200, PIXELS)
     control.after_backward(model, optimiser, info, 1, 100, 100)
     assert len(model.means) == 12  # 6 untouched, 2 + 2 clones, 2 halves of splat 8
     assert torch.equal(model.means[:8], means[:8]) and torch.equal(model.means[8:10], means[6:8])
@@ -207,6 +208,21 @@ def test_densification_clones_splits_and_prunes_within_the_bounds():
         assert optimiser.state[p]["exp_avg"].shape == p.shape
         assert not optimiser.state[p]["exp_avg"][8:].any()  # new rows start without moments
     assert (torch.sigmoid(model.opacities) >= settings.prune_opacity).all()
+
+
+def test_densification_grows_no_further_than_the_training_pixels_allow():
+    """Ten splats pulled hard and room for ten more under ``max_splats``, but 36 training
+    pixels in all: they grow to one for ``PIXELS_PER_SPLAT`` pixels."""
+    model = _rgb_model(10)
+    optimiser = _optimiser(model)
+    settings = SplatConfig(initial=4, max_splats=20, refine_start=0, refine_every=1,
+                           reset_every=1000)
+    info = {"means2d": torch.zeros(10, 2), "front": torch.arange(10), "drawn": torch.arange(10)}
+    info["means2d"].grad = torch.arange(1.0, 11.0)[:, None].repeat(1, 2)
+    control = Densification.for_stage(settings, 1.0, 200, 36)
+    assert control.limit == 36 // PIXELS_PER_SPLAT == 12
+    control.after_backward(model, optimiser, info, 1, 100, 100)
+    assert len(model.means) == 12
 
 
 def test_splats_cut_off_at_the_reach_are_split():
@@ -228,7 +244,7 @@ def test_splats_cut_off_at_the_reach_are_split():
             "clipped": torch.tensor([0])}
     info["means2d"].grad = torch.zeros(2, 2)  # no pull at all
     scale = model.scales[0].detach().clone()
-    control = Densification.for_stage(settings, 1.0, 200)
+    control = Densification.for_stage(settings, 1.0, 200, PIXELS)
     control.after_backward(model, optimiser, info, 1, 100, 100)
     assert len(model.means) == 3  # splat 1 kept, splat 0 in two halves
     assert torch.allclose(model.scales[1:], scale - math.log(1.6))
@@ -238,11 +254,11 @@ def test_a_short_stage_scales_the_densification_schedule_down():
     """``schedule_iters``: 3D Gaussian splatting's schedule (for 30,000 iterations) in
     proportion for a stage of 300; as given without it, or for a longer stage."""
     settings = SplatConfig(schedule_iters=30_000)
-    short = Densification.for_stage(settings, 1.0, 300)
+    short = Densification.for_stage(settings, 1.0, 300, PIXELS)
     assert (short.start, short.every, short.reset, short.stop) == (5, 1, 30, 150)
-    given = Densification.for_stage(SplatConfig(), 1.0, 300)
+    given = Densification.for_stage(SplatConfig(), 1.0, 300, PIXELS)
     assert (given.start, given.every, given.reset) == (500, 100, 3000)
-    long = Densification.for_stage(settings, 1.0, 60_000)
+    long = Densification.for_stage(settings, 1.0, 60_000, PIXELS)
     assert (long.start, long.every, long.reset) == (500, 100, 3000)
 
 
@@ -250,7 +266,8 @@ def test_an_opacity_reset_caps_every_opacity():
     model = _rgb_model(6)
     optimiser = _optimiser(model)
     settings = SplatConfig(initial=4, max_splats=10, reset_every=5, refine_start=100)
-    Densification.for_stage(settings, 1.0, 200).after_backward(model, optimiser, {}, 5, 10, 10)
+    control = Densification.for_stage(settings, 1.0, 200, PIXELS)
+    control.after_backward(model, optimiser, {}, 5, 10, 10)
     assert torch.sigmoid(model.opacities).max() <= 2 * settings.prune_opacity + 1e-6
 
 

@@ -343,7 +343,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     optimiser = _optimiser(run, extent)
     if resume:
         load_optimisers([optimiser], state["optimisers"], rundir)
-    strategy = Densification.for_stage(settings, extent, config.pretrain_iters)
+    strategy = Densification.for_stage(settings, extent, config.pretrain_iters,
+                                       sum(v.alpha.numel() for v in views))
     generator = torch.Generator().manual_seed(config.seed)
     if resume:
         generator.set_state(state["generator"])

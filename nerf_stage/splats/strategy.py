@@ -27,16 +27,23 @@ from ..backbones import SplatConfig
 from .model import rotation_matrices
 
 SPLIT_SHRINK = 1.6  # a split splat's two halves are this many times smaller (3DGS's 0.8 x 2)
+#: Densification grows the splats to at most one for this many training pixels: past it,
+#: on views of 64 x 64, most splats are drawn strongly by no training view, and those that
+#: few views constrain speckle the views between them (docs/splats.md, "Why the open field
+#: stays behind").
+PIXELS_PER_SPLAT = 3
 
 
 @dataclass
 class Densification:
-    """The control's settings, the cameras' ``extent`` (normalised units), the stage's
-    last densifying iteration ``stop``, the schedule (``start``, ``every``, ``reset``:
-    ``for_stage``) and the screen-space gradients gathered since the last densification."""
+    """The control's settings, the cameras' ``extent`` (normalised units), the most splats
+    it grows to (``limit``), the stage's last densifying iteration ``stop``, the schedule
+    (``start``, ``every``, ``reset``: ``for_stage``) and the screen-space gradients gathered
+    since the last densification."""
 
     settings: SplatConfig
     extent: float
+    limit: int
     stop: int
     start: int
     every: int
@@ -46,13 +53,16 @@ class Densification:
     clipped: torch.Tensor | None = field(default=None, repr=False)
 
     @classmethod
-    def for_stage(cls, settings: SplatConfig, extent: float, iterations: int) -> Densification:
-        """The control of an RGB stage of ``iterations``: densifying until ``refine_stop`` of
-        it, on the settings' schedule, scaled down to a stage shorter than
-        ``schedule_iters``."""
+    def for_stage(cls, settings: SplatConfig, extent: float, iterations: int,
+                  pixels: int) -> Densification:
+        """The control of an RGB stage of ``iterations`` on ``pixels`` training pixels in
+        all: densifying until ``refine_stop`` of it, on the settings' schedule, scaled down
+        to a stage shorter than ``schedule_iters``, to at most ``max_splats`` splats and one
+        for ``PIXELS_PER_SPLAT`` pixels."""
         scale = (min(1.0, iterations / settings.schedule_iters) if settings.schedule_iters
                  else 1.0)
-        return cls(settings, extent, int(settings.refine_stop * iterations),
+        return cls(settings, extent, min(settings.max_splats, pixels // PIXELS_PER_SPLAT),
+                   int(settings.refine_stop * iterations),
                    round(settings.refine_start * scale),
                    max(1, round(settings.refine_every * scale)),
                    max(1, round(settings.reset_every * scale)))
@@ -92,7 +102,7 @@ class Densification:
         settings = self.settings
         mean = self.grad2d / self.count.clamp(min=1)
         high = mean > settings.grow_grad2d
-        room = settings.max_splats - len(model.means)
+        room = self.limit - len(model.means)
         if room <= 0 or not (high | self.clipped).any():
             return
         small = torch.exp(model.scales).max(1).values <= settings.grow_scale * self.extent
