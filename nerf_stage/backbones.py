@@ -148,9 +148,10 @@ class SplatConfig:
 
     initial: int = 20_000
     """Splats at the start: at the capture's sparse points where it has them (at most this
-    many of them, in their colours), else at random in the scene box (at most one for four
-    pixels of a training image; and in the contracted shell around an unbounded box: far
-    splats for what lies beyond)."""
+    many of them, in their colours), else on the rays of random training pixels, in their
+    colours (at most one for four pixels of a training image; beyond an unbounded box as
+    well: far splats for what lies beyond; in the visual hull of a bounded scene with
+    transparent pixels)."""
     max_splats: int = 300_000
     """Densification never grows the splats beyond this, nor beyond one for three training
     pixels (``strategy.PIXELS_PER_SPLAT``)."""
@@ -167,8 +168,9 @@ class SplatConfig:
     patch: int = 0
     """Side in pixels of the random square of a training image that an iteration draws and
     compares (0: the whole image): an iteration's cost follows its pixels."""
-    refine_start: int = 500
-    """Iteration of the first densification."""
+    refine_start: int = 100
+    """Iteration of the first densification (3D Gaussian splatting's 500 is for a stage of
+    30,000: a stage that the clock ends after a few hundred would barely densify)."""
     refine_stop: float = 0.5
     """Densification stops at this share of the RGB stage's iterations."""
     refine_every: int = 100
@@ -179,9 +181,11 @@ class SplatConfig:
     """The RGB stage's length that ``refine_start``, ``refine_every`` and ``reset_every`` are
     given for: a shorter stage scales them down in proportion (gsplat's ``steps_scaler``;
     3D Gaussian splatting's are for 30,000); 0 takes them as given."""
-    grow_grad2d: float = 2e-4
+    grow_grad2d: float = 2e-5
     """Mean screen-space gradient (normalised image units) above which a splat is cloned
-    (small) or split (large)."""
+    (small) or split (large). 3D Gaussian splatting's 2e-4 densifies a hundred and more
+    times in its 30,000 iterations; a stage of a thousand densifies a few times and has to
+    grow more each time (docs/splats.md, "Where the views look")."""
     grow_scale: float = 0.01
     """Largest standard deviation, as a share of the cameras' extent, of a splat cloned
     rather than split."""

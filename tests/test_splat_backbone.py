@@ -524,16 +524,66 @@ def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, t
         read_splats(tmp_path / "s.npz")
 
 
+def _views_of(box, alpha=None):
+    """Two views of ``box`` (CAMERA), right halves blue, left halves black."""
+    from nerf_stage.splats.backbone import SeenViews
+
+    poses = np.stack([look_at(box.centre + np.array([0.0, -0.75, 0.25]) * box.scale,
+                              box.centre, up=(0, 0, 1)),
+                      look_at(box.centre + np.array([0.6, 0.1, 0.1]) * box.scale, box.centre,
+                              up=(0, 0, 1))])
+    images = np.zeros((2, CAMERA.height, CAMERA.width, 3), np.float32)
+    images[:, :, CAMERA.width // 2:] = (0.2, 0.4, 0.9)
+    alpha = np.ones(images.shape[:3], np.float32) if alpha is None else alpha
+    return SeenViews(poses, [CAMERA, CAMERA], images, alpha)
+
+
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_scenes_without_points_start_their_splats_where_the_views_look(unbounded):
+    """Each starting splat lies on the ray through a point of an opaque pixel of a training
+    view, in that pixel's colour, within the box (or, unbounded, about half of them beyond
+    it, within ten times the distance at which its ray leaves the box)."""
+    from nerf_stage.render.scene_box import SceneBox
+    from nerf_stage.splats.backbone import initial_splats
+
+    box = SceneBox(np.array([0.0, 0.0, 1.0]), np.array([8.0, 8.0, 4.0]), unbounded=unbounded)
+    alpha = np.ones((2, CAMERA.height, CAMERA.width), np.float32)
+    alpha[1, :, :CAMERA.width // 2] = 0  # the second view's black half is transparent
+    views = _views_of(box, alpha)
+    start = initial_splats(box, 400, 0, torch.Generator().manual_seed(0), views)
+    world = start["means"].numpy() * box.scale + box.centre
+    colours = SH_C0 * start["colours"].numpy() + 0.5
+    seen = np.zeros((2, len(world)), bool)
+    for i, pose in enumerate(views.poses):  # on a pixel of its colour, opaque
+        local = (world - pose[:3, 3]) @ pose[:3, :3]
+        x = CAMERA.cx + CAMERA.fx * local[:, 0] / -local[:, 2]
+        y = CAMERA.cy - CAMERA.fy * local[:, 1] / -local[:, 2]
+        inside = (-local[:, 2] > 0) & (x >= 0) & (x < CAMERA.width) & (y >= 0) & (
+            y < CAMERA.height)
+        right = x >= CAMERA.width // 2
+        colour = np.where(right[:, None], (0.2, 0.4, 0.9), 0.0)
+        seen[i] = inside & np.isclose(colours, colour, atol=1e-5).all(1) & (right | (i == 0))
+    assert seen.any(0).mean() > 0.95 and len(world) == 400
+    reach = np.abs(start["means"].numpy()).max(1)
+    if unbounded:
+        assert 0.3 < (reach > 1).mean() < 0.7 and reach.max() <= 10 * (0.8 + np.sqrt(3))
+    else:
+        assert (np.abs(start["means"].numpy()) <= box.extent + 1e-5).all()
+
+
 def test_bounded_scenes_start_their_splats_in_the_visual_hull():
     from nerf_stage.render.scene_box import SceneBox
     from nerf_stage.splats.backbone import initial_splats
 
-    box = SceneBox(np.zeros(3), np.array([2.0, 1.0, 1.0]))
+    box = SceneBox(np.zeros(3), np.array([2.0, 2.0, 2.0]))
     hull = np.zeros((4, 4, 4), bool)
-    hull[3, 0, 1] = True  # x in [0.5, 1], y in [-1, -0.5], z in [-0.5, 0] of the unit box
-    means = initial_splats(box, 50, 1, torch.Generator().manual_seed(0), hull)["means"]
-    low, high = np.array([0.5, -1.0, -0.5]) * box.extent, np.array([1.0, -0.5, 0.0]) * box.extent
-    assert ((means.numpy() >= low - 1e-6) & (means.numpy() <= high + 1e-6)).all()
+    hull[1:3, 1:3, 1:3] = True  # the middle half of the box, less one cell
+    hull[2, 2, 2] = False
+    views = replace(_views_of(box), hull=hull)
+    means = initial_splats(box, 200, 1, torch.Generator().manual_seed(0), views)["means"].numpy()
+    assert len(means) > 150
+    cells = np.clip(((means / box.extent * 0.5 + 0.5) * 4).astype(int), 0, 3)
+    assert hull[tuple(cells.T)].all()
 
 
 def test_a_capture_with_sparse_points_starts_its_splats_there():

@@ -44,7 +44,7 @@ from ..data.cameras import Intrinsics
 from ..data.dataset import Dataset
 from ..data.points import Points
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB, inverse_tone_map, tone_map
-from ..render.contraction import EXTENT
+from ..render.march import box_intersection
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, visual_hull
 from ..train.appearance import Appearance, exposure_free_weights
@@ -79,7 +79,10 @@ INITIAL_OPACITY = 0.1
 PIXELS_PER_INITIAL = 4
 MIN_POINTS = 4  # a capture with fewer sparse points starts at random
 HULL_CELLS = 64  # along each side of the box: the visual hull that bounded scenes start in
-FAR_SHELL = 1.9  # far splats start in the contracted shell out to this (10 box half sizes)
+HULL_TRIES = 32  # places along a starting splat's ray tried for one in the hull
+#: Far splats start out to this many bends of a ray's marching parameter (``contraction``):
+#: ten bends from the camera.
+FAR_SHELL = 1.9
 #: A splat started at a sparse point has a standard deviation in its nearest training view
 #: of at most this share of ``--splats-reach``: its ellipse to 1/255 (2.5 deviations at
 #: ``INITIAL_OPACITY``) spans half the reach, so that none starts cut off square.
@@ -246,24 +249,22 @@ def normalised_pose(pose: np.ndarray, box: SceneBox, device) -> torch.Tensor:
 
 
 def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generator,
-                   hull: np.ndarray | None = None, points: Points | None = None,
+                   views: SeenViews | None = None, points: Points | None = None,
                    eyes: np.ndarray | None = None, widest: float = math.inf) -> dict:
     """Splats to start from, ``INITIAL_OPACITY`` opaque, as wide as the mean distance to
     their three nearest neighbours, with colours of ``degree``: at most ``n`` of the
     capture's ``points`` in their colours (3D Gaussian splatting's start; sparse points
     may lie far apart, so these are at most ``widest`` times their distance to the nearest
-    of the (N, 3) normalised camera centres ``eyes``), or else ``n`` grey ones at random in
-    the box, as close together as a view's pixels allow (in its ``hull`` cells (X, Y, Z)
-    when given; half of them, in an unbounded scene, in its contracted shell out to
-    ``FAR_SHELL``)."""
+    of the (N, 3) normalised camera centres ``eyes``), else at most ``n`` where the
+    training ``views`` look (``seen_splats``)."""
     if points is not None:
         pick = torch.randperm(len(points), generator=generator)[:n].numpy()
         means = torch.as_tensor((points.positions[pick] - box.centre) / box.scale,
                                 dtype=torch.float32)
         colours = (torch.as_tensor(points.colours[pick]) - 0.5) / SH_C0
     else:
-        means = _random_means(box, n, generator, hull)
-        colours = torch.zeros(n, 3)
+        means, rgb = seen_splats(box, n, generator, views)
+        colours = (rgb - 0.5) / SH_C0
     distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:].mean(1)
     if points is not None and eyes is not None:
         distance = np.minimum(distance, widest * cKDTree(eyes).query(means.numpy())[0])
@@ -275,23 +276,63 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
             "colours": colours, "colours_rest": torch.zeros(n, sh_terms(degree) - 1, 3)}
 
 
-def _random_means(box: SceneBox, n: int, generator: torch.Generator,
-                  hull: np.ndarray | None) -> torch.Tensor:
-    """(n, 3) random positions in the box (``initial_splats``)."""
-    far = n // 2 if box.unbounded else 0
+@dataclass
+class SeenViews:
+    """The training views a splat run starts from: N world ``poses``, their ``cameras``,
+    (N, H, W, 3) ``images`` and (N, H, W) ``alpha``, and the box's visual ``hull`` (X, Y, Z)
+    where a bounded scene's images are partly transparent (None elsewhere)."""
+
+    poses: np.ndarray
+    cameras: list[Intrinsics]
+    images: np.ndarray
+    alpha: np.ndarray
+    hull: np.ndarray | None = None
+
+
+def seen_splats(box: SceneBox, n: int, generator: torch.Generator,
+                views: SeenViews) -> tuple[torch.Tensor, torch.Tensor]:
+    """(at most n, 3) positions and colours of splats where the training ``views`` look:
+    each on the ray through a random point of an opaque pixel (alpha at least a half) of a
+    random view, in that pixel's colour, at a uniform random place of the ray's marching
+    parameter (``contraction``: linear in distance through the box, in disparity beyond it
+    out to ``FAR_SHELL``, so that about half of them are far in an unbounded scene; within
+    the ``hull`` where there is one, the first of ``HULL_TRIES`` places in it). Rays that
+    meet no box (or hull) start no splat, unless none does."""
+    opaque = np.flatnonzero(views.alpha.reshape(-1) >= 0.5)
+    if not len(opaque):
+        opaque = np.arange(views.alpha.size)
+    pick = opaque[torch.randint(len(opaque), (n,), generator=generator).numpy()]
+    view, y, x = np.unravel_index(pick, views.alpha.shape)
+    colours = torch.as_tensor(views.images[view, y, x], dtype=torch.float32)
+    x = x + torch.rand(n, generator=generator).numpy()
+    y = y + torch.rand(n, generator=generator).numpy()
+    intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in views.cameras])[view]
+    local = np.stack([(x - intrinsics[:, 2]) / intrinsics[:, 0],
+                      -(y - intrinsics[:, 3]) / intrinsics[:, 1], -np.ones(n)], 1)
+    directions = np.einsum("nij,nj->ni", views.poses[view, :3, :3], local)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    origins = (views.poses[view, :3, 3] - box.centre) / box.scale
+    origins, directions = (torch.as_tensor(a, dtype=torch.float32) for a in (origins, directions))
+    if box.unbounded:
+        _, exits = box_intersection(origins, directions, torch.ones(3))
+        bend = exits.clamp(min=1.0)
+        u = torch.rand(n, generator=generator) * FAR_SHELL * bend
+        t = torch.where(u <= bend, u, bend * bend / (2 * bend - u))
+        return origins + t[:, None] * directions, colours
     extent = torch.as_tensor(box.extent, dtype=torch.float32)
-    unit = torch.rand(n - far, 3, generator=generator)  # where in the box, or in a cell
-    if hull is not None and hull.any():
-        cells = torch.as_tensor(np.argwhere(hull), dtype=torch.float32)
-        pick = torch.randint(len(cells), (n - far,), generator=generator)
-        unit = (cells[pick] + unit) / torch.as_tensor(hull.shape, dtype=torch.float32)
-    means = (unit * 2 - 1) * extent
-    if far:
-        shell = torch.rand(far, 3, generator=generator) * 2 - 1
-        norm = shell.abs().amax(1, keepdim=True).clamp(min=1e-6)
-        radius = 1 + torch.rand(far, 1, generator=generator) * (FAR_SHELL - 1)
-        means = torch.cat([means, shell / norm / (EXTENT - radius)])  # uncontracted
-    return means
+    near, far = box_intersection(origins, directions, extent)
+    tries = 1 if views.hull is None else HULL_TRIES
+    t = near[:, None] + torch.rand(n, tries, generator=generator) * (far - near)[:, None]
+    hit = (far > near)[:, None].expand(n, tries)
+    if views.hull is not None:
+        cells = torch.as_tensor(views.hull.shape)
+        unit = (origins[:, None] + t[..., None] * directions[:, None]) / extent * 0.5 + 0.5
+        index = (unit * cells).long().clamp(torch.zeros(3, dtype=torch.long), cells - 1)
+        hit = hit & torch.as_tensor(views.hull)[index.unbind(-1)]
+    first = hit.float().argmax(1)  # the first place that is in (or 0 where none is)
+    keep = hit.any(1) if hit.any() else torch.ones(n, dtype=torch.bool)  # none: keep all
+    t = t.gather(1, first[:, None])[:, 0]
+    return (origins + t[:, None] * directions)[keep], colours[keep]
 
 
 def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLike,
@@ -328,7 +369,10 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
                                dataset.cameras(train_ids), dataset.alpha[train_ids])
         eyes = (dataset.poses[train_ids, :3, 3] - box.centre) / box.scale
         focal = max(max(c.fx, c.fy) for c in dataset.cameras(train_ids))
-        model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, hull,
+        seen = SeenViews(dataset.poses[train_ids], dataset.cameras(train_ids),
+                         dataset.images[train_ids], dataset.alpha[train_ids],
+                         hull if hull is not None and hull.any() else None)
+        model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, seen,
                                           points, eyes, START_REACH * settings.reach / focal),
                            RGB, settings.sh_degree)
         run = SplatRun(config, box, dataset.intrinsics, np.asarray(stack.palette, np.float64),
