@@ -253,10 +253,10 @@ def test_splats_cut_off_at_the_reach_are_split():
 def test_a_short_stage_scales_the_densification_schedule_down():
     """``schedule_iters``: 3D Gaussian splatting's schedule (for 30,000 iterations) in
     proportion for a stage of 300; as given without it, or for a longer stage."""
-    settings = SplatConfig(schedule_iters=30_000)
+    settings = SplatConfig(schedule_iters=30_000, refine_start=500)  # 3D Gaussian splatting's
     short = Densification.for_stage(settings, 1.0, 300, PIXELS)
     assert (short.start, short.every, short.reset, short.stop) == (5, 1, 30, 150)
-    given = Densification.for_stage(SplatConfig(), 1.0, 300, PIXELS)
+    given = Densification.for_stage(replace(settings, schedule_iters=0), 1.0, 300, PIXELS)
     assert (given.start, given.every, given.reset) == (500, 100, 3000)
     long = Densification.for_stage(settings, 1.0, 60_000, PIXELS)
     assert (long.start, long.every, long.reset) == (500, 100, 3000)
