@@ -153,7 +153,7 @@ class SplatConfig:
     well: far splats for what lies beyond; in the visual hull of a bounded scene with
     transparent pixels)."""
     max_splats: int = 300_000
-    """Densification never grows the splats beyond this, nor beyond one for three training
+    """Densification never grows the splats beyond this, nor beyond one for ten training
     pixels (``strategy.PIXELS_PER_SPLAT``)."""
     sh_degree: int = 3
     """Degree of the spherical harmonics of the view-dependent colour (RGB stage) and of the

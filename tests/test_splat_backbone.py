@@ -211,16 +211,16 @@ def test_densification_clones_splits_and_prunes_within_the_bounds():
 
 
 def test_densification_grows_no_further_than_the_training_pixels_allow():
-    """Ten splats pulled hard and room for ten more under ``max_splats``, but 36 training
-    pixels in all: they grow to one for ``PIXELS_PER_SPLAT`` pixels."""
+    """Ten splats pulled hard and room for ten more under ``max_splats``, but training
+    pixels for twelve splats: they grow to one for ``PIXELS_PER_SPLAT`` pixels."""
     model = _rgb_model(10)
     optimiser = _optimiser(model)
     settings = SplatConfig(initial=4, max_splats=20, refine_start=0, refine_every=1,
                            reset_every=1000)
     info = {"means2d": torch.zeros(10, 2), "front": torch.arange(10), "drawn": torch.arange(10)}
     info["means2d"].grad = torch.arange(1.0, 11.0)[:, None].repeat(1, 2)
-    control = Densification.for_stage(settings, 1.0, 200, 36)
-    assert control.limit == 36 // PIXELS_PER_SPLAT == 12
+    control = Densification.for_stage(settings, 1.0, 200, 12 * PIXELS_PER_SPLAT + 1)
+    assert control.limit == 12
     control.after_backward(model, optimiser, info, 1, 100, 100)
     assert len(model.means) == 12
 

@@ -27,10 +27,11 @@ from ..backbones import SplatConfig
 from .model import rotation_matrices
 
 SPLIT_SHRINK = 1.6  # a split splat's two halves are this many times smaller (3DGS's 0.8 x 2)
-#: Densification grows the splats to at most one for this many training pixels: past it
-#: (100 views of 64 x 64), most splats were drawn strongly by no training view, and the
-#: held-out views came out worse (docs/splats.md, "Why the open field stays behind").
-PIXELS_PER_SPLAT = 3
+#: Densification grows the splats to at most one for this many training pixels: past it,
+#: most splats are drawn strongly by no training view, and each step and the palette stage
+#: cost more than the splats give (docs/splats.md, "Why the open field stays behind" and
+#: "Where the views look").
+PIXELS_PER_SPLAT = 10
 
 
 @dataclass
