@@ -363,15 +363,16 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         pixels = min(dataset.camera(i).width * dataset.camera(i).height for i in train_ids)
         initial = (settings.initial if points is not None
                    else max(4, min(settings.initial, pixels // PIXELS_PER_INITIAL)))
-        hull = None
-        if points is None and not box.unbounded and (dataset.alpha[train_ids] < 1).any():
-            hull = visual_hull(box, np.full(3, HULL_CELLS), dataset.poses[train_ids],
-                               dataset.cameras(train_ids), dataset.alpha[train_ids])
-        eyes = (dataset.poses[train_ids, :3, 3] - box.centre) / box.scale
-        focal = max(max(c.fx, c.fy) for c in dataset.cameras(train_ids))
-        seen = SeenViews(dataset.poses[train_ids], dataset.cameras(train_ids),
-                         dataset.images[train_ids], dataset.alpha[train_ids],
-                         hull if hull is not None and hull.any() else None)
+        poses, cameras = dataset.poses[train_ids], dataset.cameras(train_ids)
+        seen = None
+        if points is None:  # the views' images are needed only to start without points
+            alpha = dataset.alpha[train_ids]
+            hull = (visual_hull(box, np.full(3, HULL_CELLS), poses, cameras, alpha)
+                    if not box.unbounded and (alpha < 1).any() else None)
+            seen = SeenViews(poses, cameras, dataset.images[train_ids], alpha,
+                             hull if hull is not None and hull.any() else None)
+        eyes = (poses[:, :3, 3] - box.centre) / box.scale
+        focal = max(max(c.fx, c.fy) for c in cameras)
         model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, seen,
                                           points, eyes, START_REACH * settings.reach / focal),
                            RGB, settings.sh_degree)
