@@ -234,6 +234,10 @@ def test_splats_cut_off_at_the_reach_are_split():
     info = {}
     draw(means, cov, values, opacities, POSE, CAMERA, 2, info)
     assert 0 in info["clipped"].tolist()
+    aside = means.clone()
+    aside[0] = torch.tensor([50.0, 0.0, 0.0])  # as wide, but far outside the view
+    draw(aside, cov, values, opacities, POSE, CAMERA, 2, info)
+    assert 0 not in info["clipped"].tolist()
     model = _rgb_model(2)
     optimiser = _optimiser(model)
     sum(p.sum() for p in model.parameters()).backward()
@@ -584,6 +588,23 @@ def test_bounded_scenes_start_their_splats_in_the_visual_hull():
     assert len(means) > 150
     cells = np.clip(((means / box.extent * 0.5 + 0.5) * 4).astype(int), 0, 3)
     assert hull[tuple(cells.T)].all()
+
+
+def test_splats_started_where_the_views_look_are_no_wider_than_the_reach_allows():
+    """Far splats of an unbounded scene lie far apart: each starts at most ``widest`` times
+    its distance to the nearest camera wide, as sparse points do."""
+    from nerf_stage.render.scene_box import SceneBox
+    from nerf_stage.splats.backbone import initial_splats
+
+    box = SceneBox(np.zeros(3), np.full(3, 2.0), unbounded=True)
+    views = _views_of(box)
+    eyes = (views.poses[:, :3, 3] - box.centre) / box.scale
+    start = initial_splats(box, 300, 0, torch.Generator().manual_seed(0), views, eyes=eyes,
+                           widest=0.02)
+    nearest = np.linalg.norm(start["means"].numpy()[:, None] - eyes[None], axis=2).min(1)
+    width = np.exp(start["scales"].numpy()[:, 0])
+    assert (width <= 0.02 * nearest * (1 + 1e-5)).all()
+    assert (width > 0.019 * nearest).mean() > 0.5  # the far ones, at least, are capped
 
 
 def test_a_capture_with_sparse_points_starts_its_splats_there():

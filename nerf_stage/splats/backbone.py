@@ -83,9 +83,10 @@ HULL_TRIES = 32  # places along a starting splat's ray tried for one in the hull
 #: Far splats start out to this many bends of a ray's marching parameter (``contraction``):
 #: ten bends from the camera.
 FAR_SHELL = 1.9
-#: A splat started at a sparse point has a standard deviation in its nearest training view
-#: of at most this share of ``--splats-reach``: its ellipse to 1/255 (2.5 deviations at
-#: ``INITIAL_OPACITY``) spans half the reach, so that none starts cut off square.
+#: A starting splat has a standard deviation in its nearest training view of at most this
+#: share of ``--splats-reach``: its ellipse to 1/255 (2.5 deviations at ``INITIAL_OPACITY``)
+#: spans half the reach, so that none starts cut off square, nor covers every pixel of a
+#: small view (docs/splats.md, "The start's width").
 START_REACH = 0.2
 #: Bytes of frozen footprints the palette stage keeps (``_footprints``): views past them
 #: are drawn again at each visit.
@@ -253,10 +254,11 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
                    eyes: np.ndarray | None = None, widest: float = math.inf) -> dict:
     """Splats to start from, ``INITIAL_OPACITY`` opaque, as wide as the mean distance to
     their three nearest neighbours, with colours of ``degree``: at most ``n`` of the
-    capture's ``points`` in their colours (3D Gaussian splatting's start; sparse points
-    may lie far apart, so these are at most ``widest`` times their distance to the nearest
-    of the (N, 3) normalised camera centres ``eyes``), else at most ``n`` where the
-    training ``views`` look (``seen_splats``)."""
+    capture's ``points`` in their colours (3D Gaussian splatting's start), else at most
+    ``n`` where the training ``views`` look (``seen_splats``). Starting splats may lie far
+    apart (sparse points, far splats of an unbounded scene), so none is wider than
+    ``widest`` times its distance to the nearest of the (N, 3) normalised camera centres
+    ``eyes``."""
     if points is not None:
         pick = torch.randperm(len(points), generator=generator)[:n].numpy()
         means = torch.as_tensor((points.positions[pick] - box.centre) / box.scale,
@@ -266,7 +268,7 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
         means, rgb = seen_splats(box, n, generator, views)
         colours = (rgb - 0.5) / SH_C0
     distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:].mean(1)
-    if points is not None and eyes is not None:
+    if eyes is not None:
         distance = np.minimum(distance, widest * cKDTree(eyes).query(means.numpy())[0])
     scale = np.log(np.maximum(distance, 1e-7))
     n = len(means)

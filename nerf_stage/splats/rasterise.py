@@ -80,7 +80,7 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     With an ``info`` dict, it receives what densification needs: ``means2d`` (F, 2), the
     pixel positions of the F splats in front of the camera (gradients retained), their
     indices ``front`` (F,), ``drawn`` (D,), the splats with a pixel in the view, and
-    ``clipped``, those wider than ``reach`` (drawn cut off); and
+    ``clipped``, those in the view wider than ``reach`` (drawn cut off); and
     ``pairs``: (P,) pixel, splat and contribution (transmittance x alpha) of every pair
     drawn, by pixel, front to back."""
     window = window or (0, 0, camera.width, camera.height)
@@ -156,14 +156,15 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     opacities = opacities.index_select(0, index)
     level = torch.sqrt(2 * torch.log((255 * opacities.detach()).clamp(min=1)))
     rx, ry = level * torch.sqrt(a.detach()), level * torch.sqrt(c.detach())
-    if info is not None:  # cut off square at ``reach``: densification splits them
-        info["clipped"] = index[(rx > reach) | (ry > reach)]
+    wide = (rx > reach) | (ry > reach)
     rx, ry = rx.clamp(max=reach), ry.clamp(max=reach)
     x0 = (u.detach() - rx).floor().clamp(left, left + width)
     x1 = (u.detach() + rx).ceil().clamp(left, left + width)
     y0 = (v.detach() - ry).floor().clamp(top, top + height)
     y1 = (v.detach() + ry).ceil().clamp(top, top + height)
     shown = (x1 > x0) & (y1 > y0)
+    if info is not None:  # cut off square at ``reach`` in the view: densification splits them
+        info["clipped"] = index[wide & shown]
     if not shown.any():
         return None
     drawn = torch.nonzero(shown)[:, 0]
