@@ -20,6 +20,7 @@ from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
 from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import PIXELS_PER_SPLAT, Densification  # noqa: E402
+from nerf_stage.train.config import TrainConfig  # noqa: E402
 from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
@@ -649,3 +650,23 @@ def test_sparse_points_near_a_camera_start_no_wider_than_the_reach_allows():
     assert np.allclose(width, np.minimum(np.exp(free["scales"].numpy()[:, 0]), 0.05 * nearest),
                        rtol=1e-5)
     assert (width < np.exp(free["scales"].numpy()[:, 0])).all()
+
+
+def test_the_palette_stage_decays_every_rate_to_lr_decay():
+    """Over the RGB stage only the centres' rate decays (to a hundredth, 3D Gaussian
+    splatting's); over the palette stage every rate decays to ``lr_decay`` of its start."""
+    from nerf_stage.splats.backbone import _rates, _set_rates
+
+    config = TrainConfig(backbone="splats", pretrain_iters=10, finetune_iters=10, lr_decay=0.25)
+    names = ("means", "colours", "weights", "residual")
+    optimiser = torch.optim.Adam([{"name": name, "params": [torch.zeros(1, requires_grad=True)],
+                                   "lr": 1.0} for name in names])
+    start = _rates(config.splats, 2.0)
+    rates = {}
+    for it in (5, 15, 20):
+        _set_rates(optimiser, config, 2.0, it, [], 20)
+        rates[it] = {group["name"]: group["lr"] for group in optimiser.param_groups}
+    assert rates[5]["means"] == pytest.approx(start["means"] * 0.01 ** 0.5)
+    assert rates[5]["colours"] == 1.0  # as the optimiser had it
+    assert rates[15]["weights"] == pytest.approx(start["weights"] * 0.25 ** 0.5)
+    assert rates[20]["residual"] == pytest.approx(start["residual"] * 0.25)

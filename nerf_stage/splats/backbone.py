@@ -40,6 +40,7 @@ from tqdm import tqdm
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError, first_line
 
+from ..backbones import SplatConfig
 from ..data.cameras import Intrinsics
 from ..data.dataset import Dataset
 from ..data.points import Points
@@ -609,27 +610,36 @@ def _start_palette(run: SplatRun, views: list, footprints: list) -> None:
 
 def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:
     """One Adam, a group a trained parameter, named by it (``strategy.edit_rows``)."""
-    s = run.config.splats
-    rates = {"means": s.means_lr * extent, "scales": s.scales_lr, "quats": s.quats_lr,
-             "opacities": s.opacities_lr, "colours": s.colours_lr,
-             "colours_rest": s.colours_lr / 20, "weights": s.weights_lr,
-             "residual": s.weights_lr / 20}
+    rates = _rates(run.config.splats, extent)
     groups = [{"name": name, "params": [p], "lr": rates[name]}
               for name, p in run.model.named_parameters() if p.requires_grad]
     if run.appearance is not None:
         groups.append({"name": "appearance", "params": list(run.appearance.parameters()),
-                       "lr": 1e-3})
+                       "lr": rates["appearance"]})
     return torch.optim.Adam(groups, eps=1e-15, fused=True)
+
+
+def _rates(settings: SplatConfig, extent: float) -> dict[str, float]:
+    """Each trained parameter's learning rate at the start of its stage."""
+    return {"means": settings.means_lr * extent, "scales": settings.scales_lr,
+            "quats": settings.quats_lr, "opacities": settings.opacities_lr,
+            "colours": settings.colours_lr, "colours_rest": settings.colours_lr / 20,
+            "weights": settings.weights_lr, "residual": settings.weights_lr / 20,
+            "appearance": 1e-3}
 
 
 def _set_rates(optimiser, config: TrainConfig, extent: float, it: int, log: list,
                last: int) -> None:
-    """The centres' rate decays exponentially to a hundredth over the RGB stage
-    (``stage_progress``; the geometry is frozen after it)."""
-    share = stage_progress(config, it, log, last) if it < config.pretrain_iters else 1.0
+    """Over the RGB stage, the centres' rate decays exponentially to a hundredth (3D
+    Gaussian splatting's; the geometry is frozen after it); over the palette stage, every
+    rate to ``lr_decay`` of its start (``stage_progress``)."""
+    progress = stage_progress(config, it, log, last)
+    palette = it >= config.pretrain_iters
+    rates = _rates(config.splats, extent)
     for group in optimiser.param_groups:
-        if group["name"] == "means":
-            group["lr"] = config.splats.means_lr * extent * 0.01 ** share
+        if palette or group["name"] == "means":
+            decay = config.lr_decay if palette else 0.01
+            group["lr"] = rates[group["name"]] * decay ** progress
 
 
 def save_checkpoint(run: SplatRun, path: Path, optimiser, generator) -> None:

@@ -72,7 +72,8 @@ class TrainConfig:
     """F: weight iterations of ``two-stage`` with the density part frozen."""
     lr_decay: float = 0.3
     """Each stage's learning rates decay exponentially to this fraction of the backbone's by
-    the stage's end (``two-stage``: pretraining, then fine-tuning; 1: constant rates)."""
+    the stage's end (``two-stage``: pretraining, then fine-tuning; 1: constant rates). The
+    ``splats`` backbone's RGB stage keeps 3D Gaussian splatting's schedule instead."""
     batch_rays: int = 4096
     """Rays per iteration."""
     supersampling: int = 1
