@@ -207,8 +207,9 @@ class SplatConfig:
     """Adam learning rate of the degree-0 colour (RGB stage); degrees above it take a
     twentieth."""
     weights_lr: float = 3e-2
-    """Adam learning rate of the palette weights (palette stage); their view-dependent
-    residual takes a twentieth."""
+    """Adam learning rate of the palette weights at the start of the palette stage (it
+    decays to ``lr_decay`` of this over the stage); their view-dependent residual takes a
+    twentieth."""
 
     def __post_init__(self):
         integers(self, 1, MAX_SPLATS, "initial", "max_splats")
