@@ -75,8 +75,9 @@ SPEED_UP = 2.0  # how much faster iterations run than the probe's (the occupancy
 #: field's stages end by the clock with their rates decayed by it, so a plan far longer
 #: than the budget costs nothing and leaves the clock to end both stages (iterations speed
 #: up from capture to capture by up to ten times once space is pruned); splats grow on a
-#: schedule of iterations, which a longer plan would not finish.
-HEADROOM = {True: 10.0, False: 1.0}
+#: schedule of iterations, which a longer plan would not finish, and their steps slow down
+#: as they grow rather than speed up: their plan is the probe's rate alone.
+HEADROOM = {True: 10.0, False: 1.0 / SPEED_UP}
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
@@ -204,7 +205,8 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget, its learning
     rates then decayed as at the stage's last iteration. The iterations come from the rate
-    of a probe run's second half (past the first iterations' warm-up), times ``SPEED_UP``
+    of the second half of a probe run's first stage (past the first iterations' warm-up,
+    before a splat run's palette stage draws its footprints), times ``SPEED_UP``
     (iterations speed up as the occupancy grid prunes empty space) and ``HEADROOM``. A run
     whose iterations end first reports the time it took."""
     snapshots = run_dir.with_name(run_dir.name + "-snapshots")
@@ -217,6 +219,9 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
             _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0,
                    options=options)
             probed = load_run(Path(probe) / "run").record.log
+        # the first stage's second half: past the warm-up, and before the palette stage's
+        # start (a splat run's footprints of every view) that the rate would count
+        probed = [entry for entry in probed if entry["stage"] == probed[0]["stage"]]
         probed = probed[len(probed) // 2:]
         rate = (len(probed) - 1) / (probed[-1]["seconds"] - probed[0]["seconds"])
         expected = SPEED_UP * seconds * rate

@@ -387,7 +387,7 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
     drawn, acc = draw(run.model.means, covariance, values, opacity, views[0].pose, camera,
                       run.config.splats.reach)
     assert torch.allclose(footprints[0].matrix @ values, drawn, atol=1e-5)
-    assert torch.equal(footprints[0].opacity, acc)
+    assert torch.allclose(footprints[0].opacity, acc, atol=1e-6)  # a GPU's sums: any order
 
     one = 0.1 + 0.9 * torch.rand(channels, generator=torch.Generator().manual_seed(0))
     one = one.to(device)

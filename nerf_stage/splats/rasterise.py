@@ -109,8 +109,8 @@ def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     running = torch.cumsum(log_keep, 0)
     starts = torch.ones_like(pixel, dtype=torch.bool)
     starts[1:] = pixel[1:] != pixel[:-1]
-    first = torch.cummax(torch.where(starts, torch.arange(len(pixel), device=pixel.device), 0),
-                         0).values
+    # each pair's pixel's first pair (a scan of integers; cummax's is slow on a GPU)
+    first = torch.nonzero(starts)[:, 0].index_select(0, torch.cumsum(starts, 0) - 1)
     before = running - log_keep - (running - log_keep).index_select(0, first)
     return torch.exp(before).to(alpha.dtype)
 
@@ -212,9 +212,11 @@ def _spans(owners: torch.Tensor, start: torch.Tensor,
 
 def _alpha(pairs: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
     """(P,) opacity at pixels (``px``, ``py``) of splats projected as ``pairs`` (P, 6): centre
-    u, v, inverse covariance (a, b, c), peak opacity."""
-    dx = px + 0.5 - pairs[:, 0]
-    dy = py + 0.5 - pairs[:, 1]
-    power = -0.5 * (pairs[:, 2] * dx * dx + 2 * pairs[:, 3] * dx * dy + pairs[:, 4] * dy * dy)
-    return torch.clamp(pairs[:, 5] * torch.exp(power), max=MAX_ALPHA)
+    u, v, inverse covariance (a, b, c), peak opacity. (Unbound at once: a backward through
+    six column selections would zero and fill a (P, 6) gradient for each.)"""
+    u, v, a, b, c, peak = pairs.unbind(1)
+    dx = px + 0.5 - u
+    dy = py + 0.5 - v
+    power = -0.5 * (a * dx * dx + 2 * b * dx * dy + c * dy * dy)
+    return torch.clamp(peak * torch.exp(power), max=MAX_ALPHA)
 

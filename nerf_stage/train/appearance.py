@@ -45,7 +45,9 @@ class Appearance(nn.Module):
         >>> Appearance(2)(torch.tensor([[0.2, 0.5, 0.9]]), torch.tensor([1]))
         tensor([[0.2000, 0.5000, 0.9000]], grad_fn=<AddBackward0>)
         """
-        affine = self.transforms()[image]
+        # gathered by index_select: its backward adds into the (images, 3, 4) rows, where an
+        # advanced index's would sort a whole view's pixels, all of one image, on a GPU
+        affine = self.transforms().index_select(0, image)
         return torch.einsum("bij,bj->bi", affine[..., :3], rgb) + affine[..., 3]
 
     def transforms(self) -> torch.Tensor:
