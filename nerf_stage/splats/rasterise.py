@@ -89,37 +89,76 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     opacity = values.new_zeros(pixels)
     pairs = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
     if info is not None:
-        info["drawn"] = (torch.unique(pairs[1]) if pairs is not None
+        info["drawn"] = (torch.nonzero(torch.bincount(pairs[1], minlength=len(centres)))[:, 0]
+                         if pairs is not None
                          else torch.zeros(0, dtype=torch.long, device=centres.device))
     if pairs is None:
         return weights, opacity
-    pixel, splat, alpha = pairs
-    contribution = _transmittance(pixel, alpha) * alpha
+    pixel, splat, alpha, light = pairs
     if info is not None:
-        info["pairs"] = pixel, splat, contribution.detach()
-    weights = weights.index_add(0, pixel, contribution[:, None] * values.index_select(0, splat))
-    return weights, opacity.index_add(0, pixel, contribution)
+        info["pairs"] = pixel, splat, light * alpha.detach()
+    return _Composite.apply(alpha, values, pixel, splat, light, pixels)
 
 
-def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """(P,) light left in front of each pair (``pixel``, ``alpha``), sorted by pixel, then
-    front to back: a product over its pixel's earlier pairs, summed as logarithms in float64
-    (a view's running sum spans all of its pairs)."""
+class _Composite(torch.autograd.Function):
+    """(pixels, M) values and (pixels,) opacity blended from the pairs (``pixel``, ``splat``,
+    ``alpha``), sorted by pixel, then front to back, with ``light`` (P,) the transmittance
+    in front of each. Its backward is 3D Gaussian splatting's: d/d alpha_i of a pixel's sum
+    is light_i x q_i minus what the pairs behind i send, over 1 - alpha_i (q: the upstream
+    gradient's product with the pair's values, plus the opacity's), without autograd's
+    record of every per-pair product."""
+
+    @staticmethod
+    def forward(ctx, alpha, values, pixel, splat, light, pixels: int):
+        contribution = light * alpha
+        drawn = values.new_zeros(pixels, values.shape[1]).index_add_(
+            0, pixel, contribution[:, None] * values.index_select(0, splat))
+        ctx.save_for_backward(alpha, values, pixel, splat, light)
+        return drawn, values.new_zeros(pixels).index_add_(0, pixel, contribution)
+
+    @staticmethod
+    def backward(ctx, grad_drawn, grad_opacity):
+        alpha, values, pixel, splat, light = ctx.saved_tensors
+        upstream = grad_drawn.index_select(0, pixel)  # (P, M)
+        contribution = light * alpha
+        grad_values = torch.zeros_like(values).index_add_(0, splat,
+                                                          contribution[:, None] * upstream)
+        if not ctx.needs_input_grad[0]:  # the geometry is frozen
+            return None, grad_values, None, None, None, None
+        q = ((upstream * values.index_select(0, splat)).sum(1)
+             + grad_opacity.index_select(0, pixel))
+        # what the pairs behind each one send: its pixel's running sum at its last pair, less
+        # its own
+        running = torch.cumsum((contribution * q).double(), 0)
+        last = _first_pair(pixel, len(grad_opacity), last=True)
+        behind = (running.index_select(0, last) - running).to(alpha.dtype)
+        return light * q - behind / (1 - alpha), grad_values, None, None, None, None
+
+
+def _first_pair(pixel: torch.Tensor, pixels: int, last: bool = False) -> torch.Tensor:
+    """(P,) index of the first (or ``last``) pair of each pair's pixel, of ``pixels``
+    (``pixel`` sorted): from the pixels' counts of pairs."""
+    counts = torch.bincount(pixel, minlength=pixels)
+    ends = torch.cumsum(counts, 0)
+    return (ends - 1 if last else ends - counts).index_select(0, pixel)
+
+
+def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor, pixels: int) -> torch.Tensor:
+    """(P,) light left in front of each pair (``pixel``, of ``pixels``; ``alpha``), sorted
+    by pixel, then front to back: a product over its pixel's earlier pairs, summed as
+    logarithms in float64 (a view's running sum spans all of its pairs)."""
     log_keep = torch.log1p(-alpha).double()
-    running = torch.cumsum(log_keep, 0)
-    starts = torch.ones_like(pixel, dtype=torch.bool)
-    starts[1:] = pixel[1:] != pixel[:-1]
-    # each pair's pixel's first pair (a scan of integers; cummax's is slow on a GPU)
-    first = torch.nonzero(starts)[:, 0].index_select(0, torch.cumsum(starts, 0) - 1)
-    before = running - log_keep - (running - log_keep).index_select(0, first)
-    return torch.exp(before).to(alpha.dtype)
+    running = torch.cumsum(log_keep, 0) - log_keep  # up to each pair, itself excluded
+    before = running - running.index_select(0, _first_pair(pixel, pixels))
+    return torch.exp(before.to(alpha.dtype))  # local sums: float32 holds them
 
 
 def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int,
            info: dict | None, window: tuple[int, int, int, int]):
     """The (pixel, splat, alpha) pairs of one view's ``window`` above 1/255 with at least
     ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel (of the window),
-    then front to back; None when no splat shows (``draw``'s ``info`` filled on the way)."""
+    then front to back, and that light (detached); None when no splat shows (``draw``'s
+    ``info`` filled on the way)."""
     left, top, width, height = window
     pose = pose.to(centres.dtype)
     rotation, origin = pose[:3, :3], pose[:3, 3]
@@ -175,7 +214,7 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     # the rows of each splat's box, and in each row the pixels inside its ellipse
     row_splat, py = _spans(drawn, y0.index_select(0, drawn).long(),
                            y1.index_select(0, drawn).long())
-    row_u, row_v, ca, cb, cc, _ = table.detach().index_select(0, row_splat).T
+    row_u, row_v, ca, cb, cc, peak = table.detach().index_select(0, row_splat).T
     row_x0, row_x1, row_level = torch.stack([x0, x1, level], 1).index_select(0, row_splat).T
     dy = py + 0.5 - row_v
     room = (cb * dy) ** 2 - ca * (cc * dy * dy - row_level ** 2)
@@ -185,18 +224,27 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     last = torch.minimum(torch.floor(middle + half), row_x1 - 1).long()
     row, px = _spans(torch.arange(len(py), device=py.device), first,
                      torch.where(room >= 0, torch.maximum(last + 1, first), first))
-    ids, py = row_splat.index_select(0, row), py.index_select(0, row)
     with torch.no_grad():  # the pairs that show, sorted by pixel, then front to back
-        alpha = _alpha(table.index_select(0, ids), px, py)
-        visible = torch.nonzero(alpha >= 1 / 255)[:, 0]
-        pixel = ((py.index_select(0, visible) - top) * width
-                 + px.index_select(0, visible) - left)
+        # alpha along a row: the row's peak times a Gaussian in px - middle (the ellipse's
+        # quadratic form with the square completed in dx)
+        row_peak = peak * torch.exp(-0.5 * (cc - cb * cb / ca) * dy * dy)
+        at_middle, spread, at_peak = torch.stack([middle, ca, row_peak], 1).index_select(
+            0, row).T
+        alpha = torch.clamp(at_peak * torch.exp(-0.5 * spread * (px - at_middle) ** 2),
+                            max=MAX_ALPHA)
+        alpha = torch.where(alpha >= 1 / 255, alpha, 0)  # no light kept: dropped below
+        pixel = (((py - top) * width - left).index_select(0, row) + px).int()
         pixel, order = torch.sort(pixel, stable=True)  # by pixel, still front to back
-        visible = visible.index_select(0, order)
-        kept = _transmittance(pixel, alpha.index_select(0, visible)) >= MIN_TRANSMITTANCE
-        shown, pixel = visible[kept], pixel[kept]
-    ids, px, py = ids.index_select(0, shown), px.index_select(0, shown), py.index_select(0, shown)
-    return pixel, index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py)
+        alpha = alpha.index_select(0, order)
+        light = _transmittance(pixel, alpha, width * height)
+        # the light kept is a prefix of each pixel's pairs: their light stays as it is
+        kept = torch.nonzero((light >= MIN_TRANSMITTANCE) & (alpha > 0))[:, 0]
+        pixel, light, shown = pixel.index_select(0, kept), light.index_select(0, kept), \
+            order.index_select(0, kept)
+    row, px = row.index_select(0, shown), px.index_select(0, shown)
+    ids, py = row_splat.index_select(0, row), py.index_select(0, row)
+    return (pixel.long(), index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py),
+            light)
 
 
 def _spans(owners: torch.Tensor, start: torch.Tensor,
