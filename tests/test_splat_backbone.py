@@ -386,8 +386,13 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
     covariance, opacity = run.model.gaussians()
     drawn, acc = draw(run.model.means, covariance, values, opacity, views[0].pose, camera,
                       run.config.splats.reach)
-    assert torch.allclose(footprints[0].matrix @ values, drawn, atol=1e-5)
+    assert torch.allclose(footprints[0].draw(values), drawn, atol=1e-5)
     assert torch.allclose(footprints[0].opacity, acc, atol=1e-6)  # a GPU's sums: any order
+    values.requires_grad_(True)  # the backward goes through the transposed matrix
+    footprints[0].draw(values).square().sum().backward()
+    dense = footprints[0].matrix.to_dense()
+    assert torch.equal(footprints[0].transposed.to_dense(), dense.T)
+    assert torch.allclose(values.grad, 2 * dense.T @ (dense @ values.detach()), atol=1e-5)
 
     one = 0.1 + 0.9 * torch.rand(channels, generator=torch.Generator().manual_seed(0))
     one = one.to(device)

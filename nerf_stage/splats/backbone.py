@@ -91,7 +91,7 @@ FAR_SHELL = 1.9
 START_REACH = 0.2
 #: Bytes of frozen footprints the palette stage keeps (``_footprints``): views past them
 #: are drawn again at each visit.
-FOOTPRINT_BYTES = 512 << 20
+FOOTPRINT_BYTES = 768 << 20
 
 
 class SplatModel(nn.Module):
@@ -494,7 +494,7 @@ def _loss(run: SplatRun, view: _View, terms, background, it: int, info: dict,
                            opacity, view.pose, view.camera, config.splats.reach, info,
                            view.window)
     else:
-        values, acc = footprint.matrix @ model.values(view.pose[:3, 3]), footprint.opacity
+        values, acc = footprint.draw(model.values(view.pose[:3, 3])), footprint.opacity
     w, h = view.window[2:]
     values, acc = values.view(h, w, -1), acc.view(h, w)
     if model.kind == RGB:
@@ -542,16 +542,36 @@ def _palette_views(run: SplatRun, stack, views: list) -> list:
 @dataclass
 class _Footprint:
     """A view's splats with the geometry frozen: the (H W, S) sparse ``matrix`` of each
-    pixel's contributions (transmittance x alpha of its splats) and the (H W,) ``opacity``,
-    so that the view's values are ``matrix @ values``, drawn without projecting or sorting."""
+    pixel's contributions (transmittance x alpha of its splats), its ``transposed`` (S, H W)
+    and the (H W,) ``opacity``, so that the view's values are ``matrix @ values``
+    (``draw``), drawn without projecting or sorting. Both are CSR with 32-bit indices: the
+    backward's product with the transposed would otherwise transpose ``matrix`` anew."""
 
     matrix: torch.Tensor
+    transposed: torch.Tensor
     opacity: torch.Tensor
+
+    def draw(self, values: torch.Tensor) -> torch.Tensor:
+        """(H W, M) values of the view from the splats' (S, M) ``values``."""
+        return _SparseProduct.apply(self.matrix, self.transposed, values)
 
     @property
     def nbytes(self) -> int:
-        return sum(t.numel() * t.element_size() for t in (
-            self.matrix.crow_indices(), self.matrix.col_indices(), self.matrix.values()))
+        return sum(t.numel() * t.element_size() for m in (self.matrix, self.transposed)
+                   for t in (m.crow_indices(), m.col_indices(), m.values()))
+
+
+class _SparseProduct(torch.autograd.Function):
+    """``matrix @ values``, differentiable in ``values`` through ``transposed``."""
+
+    @staticmethod
+    def forward(ctx, matrix, transposed, values):
+        ctx.transposed = transposed
+        return matrix @ values
+
+    @staticmethod
+    def backward(ctx, grad):
+        return None, None, ctx.transposed @ grad
 
 
 @torch.no_grad()
@@ -564,12 +584,27 @@ def _footprint(run: SplatRun, view: _View) -> _Footprint:
                   view.pose, view.camera, run.config.splats.reach, info, view.window)
     pixel, splat, contribution = info.get("pairs", (acc.new_zeros(0, dtype=torch.long),) * 2
                                           + (acc.new_zeros(0),))
+    pixels, splats = len(acc), len(model.means)
+    # pairs by splat, then pixel; and by pixel, then splat (stable sorts of both orders)
+    by_splat = torch.sort(splat.int(), stable=True)[1]
+    by_pixel = by_splat.index_select(0, torch.sort(pixel.index_select(0, by_splat).int(),
+                                                   stable=True)[1])
+    return _Footprint(*(_csr(rows.index_select(0, order), columns.index_select(0, order),
+                             contribution.index_select(0, order), shape)
+                        for rows, columns, order, shape in (
+                            (pixel, splat, by_pixel, (pixels, splats)),
+                            (splat, pixel, by_splat, (splats, pixels)))), acc)
+
+
+def _csr(rows: torch.Tensor, columns: torch.Tensor, values: torch.Tensor,
+         shape: tuple[int, int]) -> torch.Tensor:
+    """A sparse CSR matrix with 32-bit indices from distinct (row, column, value) triplets
+    sorted by row, then column."""
+    ends = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
     with warnings.catch_warnings():  # torch calls its sparse CSR support beta
         warnings.simplefilter("ignore", UserWarning)
-        matrix = torch.sparse_coo_tensor(torch.stack([pixel, splat]), contribution,
-                                         (len(acc), len(model.means)), check_invariants=False
-                                         ).coalesce().to_sparse_csr()
-    return _Footprint(matrix, acc)
+        return torch.sparse_csr_tensor(torch.cat([ends.new_zeros(1), ends]).int(),
+                                       columns.int(), values, shape)
 
 
 def _footprints(run: SplatRun, views: list) -> list:
@@ -597,7 +632,7 @@ def _start_palette(run: SplatRun, views: list, footprints: list) -> None:
         footprint = footprint or _footprint(run, view)
         straight = view.weights.view(-1, channels) / footprint.opacity[:, None].clamp(min=1e-6)
         straight = tone_map(straight) if transport else straight
-        light += footprint.matrix.t() @ torch.cat([straight, torch.ones_like(straight[:, :1])],
+        light += footprint.transposed @ torch.cat([straight, torch.ones_like(straight[:, :1])],
                                                   1)
     mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
     weights = light[:, :-1] / light[:, -1:].clamp(min=1e-6)
