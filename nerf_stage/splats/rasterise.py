@@ -239,8 +239,8 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
         light = _transmittance(pixel, alpha, width * height)
         # the light kept is a prefix of each pixel's pairs: their light stays as it is
         kept = torch.nonzero((light >= MIN_TRANSMITTANCE) & (alpha > 0))[:, 0]
-        pixel, light, shown = pixel.index_select(0, kept), light.index_select(0, kept), \
-            order.index_select(0, kept)
+        pixel, light = pixel.index_select(0, kept), light.index_select(0, kept)
+        shown = order.index_select(0, kept)
     row, px = row.index_select(0, shown), px.index_select(0, shown)
     ids, py = row_splat.index_select(0, row), py.index_select(0, row)
     return (pixel.long(), index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py),
