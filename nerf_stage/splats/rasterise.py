@@ -85,15 +85,13 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     drawn, by pixel, front to back."""
     window = window or (0, 0, camera.width, camera.height)
     pixels = window[2] * window[3]
-    weights = values.new_zeros(pixels, values.shape[1])
-    opacity = values.new_zeros(pixels)
     pairs = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
     if info is not None:
         info["drawn"] = (torch.nonzero(torch.bincount(pairs[1], minlength=len(centres)))[:, 0]
                          if pairs is not None
                          else torch.zeros(0, dtype=torch.long, device=centres.device))
     if pairs is None:
-        return weights, opacity
+        return values.new_zeros(pixels, values.shape[1]), values.new_zeros(pixels)
     pixel, splat, alpha, light = pairs
     if info is not None:
         info["pairs"] = pixel, splat, light * alpha.detach()
