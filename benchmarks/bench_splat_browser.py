@@ -9,15 +9,17 @@ server turns every tab's camera around the scene (20 updates a second, as a drag
 the page counts its animation frames for ``--seconds`` (and at least 8 frames); the
 studio's median rate over the bare viewer's is the ratio the issue bounds (>= 0.8). Each
 rate comes with where a frame went (``frame_rate``): the page's drawing and sort, and the
-CPU time of Chromium's GPU process, whose software rasteriser is the limit here. Then the
-run's own bake (``nerf-stage bake``'s defaults, kept in the run folder) is opened, its
-frame rate measured the same way, and a colour is typed ``-n`` times: the server's part
-(the colours of every splat computed and handed to viser, which sends them) and the time
-from Enter to the first frame whose centre changed.
+CPU time of Chromium's GPU process, whose software rasteriser is the limit here. For each
+of ``--edit-counts``, random splats with a view-dependent residual are opened in the
+studio and a colour is typed ``-n`` times: the server's part of each edit (the colours of
+every splat computed for the tab's camera and handed to viser, which sends them). Then the
+run's own splats (a grid run's bake, ``nerf-stage bake``'s defaults, kept in the run
+folder) are opened, their frame rate measured the same way, and a colour is typed ``-n``
+times: the server's part and the time from Enter to the first frame whose centre changed.
 
     python benchmarks/bench_splat_browser.py [--run demo_out/nerf/run] [--out benchmarks/out]
         [--counts 10000 30000 50000 100000] [--seconds 4] [--repeats 3] [-n 10]
-        [--window 1280x800]
+        [--edit-counts 300000] [--window 1280x800]
 """
 
 from __future__ import annotations
@@ -78,19 +80,22 @@ window.__frames = counter;
 TURNS_PER_SECOND = 20
 
 
-def random_splats(target: SceneTarget, count: int, rng: np.random.Generator) -> Splats:
+def random_splats(target: SceneTarget, count: int, rng: np.random.Generator,
+                  residual: bool = False) -> Splats:
     """``count`` splats inside the occupied bounds of ``target``'s run, each a few
-    thousandths of them wide."""
+    thousandths of them wide; with ``residual``, a small view-dependent residual of degree 3
+    as a splat run trains (the studio then colours them for each tab's camera)."""
     run, bounds = target.run, target.bounds
     size = float(np.ptp(bounds, 0).max())
     q = rng.normal(size=(count, 4))
     m = n_terms(len(run.palette), run.basis, run.order)
+    rest = (rng.normal(0, 0.01, (count, 15, m)).astype(np.float32) if residual else None)
     return Splats(rng.uniform(*bounds, (count, 3)).astype(np.float32),
                   rng.uniform(0.002, 0.008, (count, 3)).astype(np.float32) * size,
                   (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
                   rng.uniform(0.3, 0.9, count).astype(np.float32),
                   rng.dirichlet(np.ones(m), count).astype(np.float32), run.palette, run.basis,
-                  run.order, np.ones(3), {})
+                  run.order, np.ones(3), {}, rest)
 
 
 def frame_rate(driver, server, centre: np.ndarray, seconds: float, frames: int = 8) -> dict:
@@ -166,16 +171,43 @@ def studio_rate(driver, target: SceneTarget, seconds: float) -> dict:
         studio.stop()
 
 
+def server_edits(driver, target: SceneTarget, n: int) -> list[float]:
+    """The server's part (ms) of ``n`` palette edits typed into the studio page showing
+    ``target``'s splats: their colours for the tab's camera computed and handed to viser.
+    The page is not waited for: at such counts software WebGL draws a frame in seconds."""
+    studio = Studio(target, port=0)
+    try:
+        driver.get(studio.url)
+        browser.wait_for(lambda: studio.view.viewports or None)
+        time.sleep(3)  # the splats arrive
+        original = np.round(255 * studio.editor.palette[0]).astype(int)
+        server = []
+        for i in range(n):
+            colour = 255 - original if i % 2 == 0 else original
+            studio.last_redraw_ms = float("nan")
+            browser.type_colour(driver, "colour 1", "#{:02x}{:02x}{:02x}".format(*colour))
+            if not browser.wait_for(lambda: not np.isnan(studio.last_redraw_ms), timeout=60):
+                raise RuntimeError("the studio did not redraw within 60 s of an edit")
+            server.append(studio.last_redraw_ms)
+            time.sleep(0.3)
+        return server
+    finally:
+        studio.stop()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", default="demo_out/nerf/run", help="a nerf-stage run folder")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out"))
-    parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 30_000, 50_000,
+    parser.add_argument("--counts", type=int, nargs="*", default=[10_000, 30_000, 50_000,
                                                                   100_000])
     parser.add_argument("--seconds", type=float, default=4.0, help="frames counted this long")
     parser.add_argument("--repeats", type=int, default=3,
                         help="bare viewer and studio measured in turn this many times (medians)")
     parser.add_argument("-n", type=int, default=10, help="palette edits timed")
+    parser.add_argument("--edit-counts", type=int, nargs="+", default=[300_000],
+                        help="random splats (with a view-dependent residual) whose palette "
+                             "edits' server part is timed")
     parser.add_argument("--window", default="1280x800", help="browser window, WIDTHxHEIGHT")
     args = parser.parse_args()
     if not (browser.CHROMIUM and browser.CHROMEDRIVER):
@@ -197,6 +229,14 @@ def main() -> None:
             bare, ours = both_rates(driver, splats, ours_target, args)
             results["counts"][count] = {"bare": bare, "studio": ours}
             print(f"{count:>7} random splats: {compared(bare, ours)}", flush=True)
+        results["edits"] = {}
+        for count in args.edit_counts:
+            splats = random_splats(baked, count, rng, residual=True)
+            server = server_edits(driver, SceneTarget(baked.run, baked.path, splats,
+                                                      baked.home), args.n)
+            results["edits"][count] = server
+            print(summary(f"{count} random splats, palette edit: server (ms)", server, 20),
+                  flush=True)
         results.update(bake(driver, baked, args))
     finally:
         driver.quit()
@@ -243,7 +283,8 @@ def bake(driver, target: SceneTarget, args) -> dict:
         after = browser.screenshot(driver)
         weights, _ = render_splats(splats, target.home_pose()[None],
                                    target.run.intrinsics)
-        page, server = time_edits(driver, studio, dominant_colour(studio, weights[0]), args.n)
+        index = dominant_colour(studio.editor.palette, weights[0], splats.basis, splats.order)
+        page, server = time_edits(driver, studio, index, args.n)
         print(summary("palette edit -> new frame (ms)", page))
         print(summary(f"  server: {len(splats)} splats' colours computed, sent (ms)", server,
                       20))

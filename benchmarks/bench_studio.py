@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_collection import mosaic, photos  # noqa: E402
 
+from palette_core.basis import Basis, basis_terms  # noqa: E402
 from palette_core.decompose import decompose  # noqa: E402
 from studio.app import Studio  # noqa: E402
 from studio.photos import PhotoTarget  # noqa: E402
@@ -56,10 +57,19 @@ def photo_stack(folder: Path) -> Path:
     return stack
 
 
-def dominant_colour(studio: Studio, weights: np.ndarray) -> int:
-    """The palette colour with the largest weight at the centre of a (H, W, M) view."""
+def dominant_colour(palette: np.ndarray, weights: np.ndarray, basis: Basis = Basis.ADDITIVE,
+                    order: int = 1) -> int:
+    """The colour of ``palette`` (K, 3) whose edit to its complement changes the centre of a
+    (H, W, M) view of ``weights`` most (in a transport basis, pairs of colours light a pixel
+    too: its largest additive weight may not be the colour that shows)."""
     h, w = weights.shape[:2]
-    return int(np.argmax(weights[h // 2, w // 2, :len(studio.editor.palette)]))
+    centre, terms = weights[h // 2, w // 2], basis_terms(palette, basis, order)
+    changes = []
+    for k in range(len(palette)):
+        edited = np.array(palette, np.float64)
+        edited[k] = 1 - edited[k]
+        changes.append(np.abs(centre @ (basis_terms(edited, basis, order) - terms)).sum())
+    return int(np.argmax(changes))
 
 
 def time_edits(driver, studio: Studio, index: int, n: int) -> tuple[list[float], list[float]]:
@@ -130,7 +140,7 @@ def bench_photos(driver, out: Path, n: int) -> None:
         driver.get(studio.url)
         browser.wait_for(lambda: browser.pixel(driver) not in (None, [0, 0, 0]))
         time.sleep(2)
-        index = dominant_colour(studio, target.weights(0))
+        index = dominant_colour(studio.editor.palette, target.weights(0))
         page, server = time_edits(driver, studio, index, n)
         h, w = target.weights(0).shape[:2]
         print(summary(f"photo {w}x{h}: change -> new frame (ms)", page, 100))
@@ -153,7 +163,8 @@ def bench_scene(driver, run: Path, out: Path, n: int) -> None:
         view = browser.wait_for(lambda: next(iter(studio.view.viewports.values()), None))
         browser.wait_for(lambda: view.drawn[0] == rows, timeout=60)
         time.sleep(2)
-        index = dominant_colour(studio, view.render.weights[0])
+        index = dominant_colour(studio.editor.palette, view.render.weights[0],
+                                target.run.basis, target.run.order)
         page, server = time_edits(driver, studio, index, n)
         h, w = view.render.weights.shape[1:3]
         print(summary(f"scene {w}x{h}: change -> new frame (ms)", page, 50))
