@@ -52,12 +52,11 @@ import shlex
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
-from bench_scenes import error_map, rendered
+from bench_scenes import Snapshots, checkpoint_curve, curve_picture, error_map, rendered
 from PIL import Image
 
 from nerf_stage.backbones import BACKBONES
@@ -230,13 +229,7 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
                    expected * HEADROOM[BACKBONES[backbone].is_field], seconds / 60,
                    every=max(1, round(expected / max(1, curve_points))), log=log,
                    options=options)
-    curve = []
-    for path in sorted(snapshots.glob("*.pt")) if curve_points else ():
-        with tempfile.TemporaryDirectory(dir=snapshots) as folder:
-            os.link(path, Path(folder) / "checkpoint.pt")
-            run = load_run(folder)
-        scores = image_scores(rendered(run, data, test), data.images[test])
-        curve.append((run.record.log[-1]["seconds"], scores["psnr"]))
+    curve = checkpoint_curve(snapshots, data, test) if curve_points else []
     run = load_run(run_dir)
     memory = re.search(r"peak memory ([\d.]+) GB", log.read_text() if log.is_file() else "")
     rendered(run, data, test[:1])  # warm-up, so that the rate below is of renders alone
@@ -246,50 +239,6 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
     return {"render": render, "curve": curve, "render_fps": fps,
             "iterations": len(run.record.log), "seconds": run.record.log[-1]["seconds"],
             "peak_gb": float(memory.group(1)) if memory else None}
-
-
-class Snapshots(threading.Thread):
-    """While in its ``with``, keeps each new version of ``checkpoint`` that a training
-    process writes (atomically, by renaming) as a hard link in ``folder``, emptied first
-    (the version there before, an earlier run's, is not kept)."""
-
-    def __init__(self, checkpoint: Path, folder: Path):
-        super().__init__(daemon=True)
-        self.checkpoint, self.folder, self.done = checkpoint, folder, threading.Event()
-        self.seen = None
-
-    def __enter__(self):
-        self.folder.mkdir(parents=True, exist_ok=True)
-        for old in self.folder.glob("*.pt"):
-            old.unlink()
-        if self.checkpoint.is_file():
-            self.seen = _version(self.checkpoint)
-        self.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.done.set()
-        self.join()
-
-    def run(self) -> None:
-        while True:
-            finished = self.done.is_set()  # one last look after the process has ended
-            try:
-                version = _version(self.checkpoint)
-                if version != self.seen:
-                    os.link(self.checkpoint, self.folder / f"{time.monotonic_ns()}.pt")
-                    self.seen = version
-            except FileNotFoundError:  # not written yet, or renamed over just now
-                pass
-            if finished:
-                return
-            self.done.wait(0.5)
-
-
-def _version(path: Path) -> tuple[int, int]:
-    """What tells one written version of a file from the next: its inode and mtime."""
-    status = path.stat()
-    return status.st_ino, status.st_mtime_ns
 
 
 def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iterations: float,
@@ -378,25 +327,6 @@ def _run(command: list, what: str, log: Path | None = None, **env: str) -> str:
     if done.returncode:
         sys.exit(f"{what} failed:\n" + "\n".join(output.splitlines()[-15:]))
     return output
-
-
-def curve_picture(methods: dict, title: str, path: Path) -> None:
-    """Held-out PSNR against training seconds: a line per method with a ``curve``, a point
-    for each with only its end (nerfacto)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    from matplotlib import pyplot
-
-    figure, axes = pyplot.subplots(figsize=(6, 4))
-    for method, result in sorted(methods.items()):
-        seconds, psnr = zip(*(result.get("curve") or [(result["seconds"], result["psnr"])]))
-        axes.plot(np.divide(seconds, 60), psnr, "o-", label=method)
-    axes.set(xlabel="training minutes", ylabel="held-out PSNR (dB)", title=title)
-    axes.grid(alpha=0.3)
-    axes.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    pyplot.close(figure)
 
 
 def main() -> None:

@@ -7,11 +7,14 @@ the noise floor (the held-out views against the same views rendered under anothe
 seed, ``val_seed2/`` and ``test_seed2/``), decompose its training views (``palette-decompose
 -k 6``), then train per ``--backbones`` x ``--spaces`` x ``--strategies`` and score the held-out
 views, saving an error map of each run's first test views
-(``OUT/SCENE-SPACE-STRATEGY[-BACKBONE].png``: truth, render, absolute error x4).
+(``OUT/SCENE-SPACE-STRATEGY[-BACKBONE].png``: truth, render, absolute error x4). With
+``--curve-points N``, about N checkpoints of each run are kept while it trains and scored on
+the test views: ``OUT/SCENE-curve.png``, test PSNR against training time for every run of
+the scene.
 
     python benchmarks/bench_scenes.py [--out benchmarks/out/scenes] [--scenes garden ...]
         [--backbones grid splats] [--minutes 4] [--spaces auto]
-        [--strategies two-stage rgb] [--iters P F]
+        [--strategies two-stage rgb] [--iters P F] [--curve-points 10]
 
 Needs Debian's ``blender`` (or PyPI's ``bpy``); runs are cached in OUT by scene, space, strategy
 and backbone (delete a run folder to train it again).
@@ -20,11 +23,15 @@ and backbone (delete a run folder to train it again).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
+import os
 import shutil
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -105,6 +112,82 @@ def error_map(truth: np.ndarray, render: np.ndarray, path: Path, views: int = 3)
                                     Image.NEAREST).save(path)
 
 
+class Snapshots(threading.Thread):
+    """While in its ``with``, keeps each new version of ``checkpoint`` that a training
+    process writes (atomically, by renaming) as a hard link in ``folder``, emptied first
+    (the version there before, an earlier run's, is not kept)."""
+
+    def __init__(self, checkpoint: Path, folder: Path):
+        super().__init__(daemon=True)
+        self.checkpoint, self.folder, self.done = checkpoint, folder, threading.Event()
+        self.seen = None
+
+    def __enter__(self):
+        self.folder.mkdir(parents=True, exist_ok=True)
+        for old in self.folder.glob("*.pt"):
+            old.unlink()
+        if self.checkpoint.is_file():
+            self.seen = _version(self.checkpoint)
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.done.set()
+        self.join()
+
+    def run(self) -> None:
+        while True:
+            finished = self.done.is_set()  # one last look after the process has ended
+            try:
+                version = _version(self.checkpoint)
+                if version != self.seen:
+                    os.link(self.checkpoint, self.folder / f"{time.monotonic_ns()}.pt")
+                    self.seen = version
+            except FileNotFoundError:  # not written yet, or renamed over just now
+                pass
+            if finished:
+                return
+            self.done.wait(0.5)
+
+
+def _version(path: Path) -> tuple[int, int]:
+    """What tells one written version of a file from the next: its inode and mtime."""
+    status = path.stat()
+    return status.st_ino, status.st_mtime_ns
+
+
+def checkpoint_curve(snapshots: Path, data, ids) -> list[tuple[float, float]]:
+    """(training seconds, PSNR of views ``ids`` of ``data``) of each checkpoint that
+    ``Snapshots`` kept in ``snapshots``, in the order they were written."""
+    curve = []
+    for path in sorted(snapshots.glob("*.pt")):
+        with tempfile.TemporaryDirectory(dir=snapshots) as folder:
+            os.link(path, Path(folder) / "checkpoint.pt")
+            run = load_run(folder)
+        scores = image_scores(rendered(run, data, ids), data.images[ids])
+        curve.append((run.record.log[-1]["seconds"], scores["psnr"]))
+    return curve
+
+
+def curve_picture(methods: dict, title: str, path: Path) -> None:
+    """Held-out PSNR against training seconds: a line per method with a ``curve``, a point
+    for each with only its end (nerfacto)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib import pyplot
+
+    figure, axes = pyplot.subplots(figsize=(6, 4))
+    for method, result in sorted(methods.items()):
+        seconds, psnr = zip(*(result.get("curve") or [(result["seconds"], result["psnr"])]))
+        axes.plot(np.divide(seconds, 60), psnr, "o-", label=method)
+    axes.set(xlabel="training minutes", ylabel="held-out PSNR (dB)", title=title)
+    axes.grid(alpha=0.3)
+    axes.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    pyplot.close(figure)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/scenes"))
@@ -120,6 +203,9 @@ def main() -> None:
                         help="train on photos re-exposed by gains exp(N(0, SIGMA)) (exposed)")
     parser.add_argument("--appearance", nargs="+", default=["off"], choices=("off", "on"),
                         help="train without and/or with per-image colour transforms")
+    parser.add_argument("--curve-points", type=int, default=0,
+                        help="checkpoints of each run scored on the test views for the "
+                             "PSNR-against-time curve (0: the end alone)")
     args = parser.parse_args()
     results = {}
     for name in args.scenes:
@@ -138,8 +224,13 @@ def main() -> None:
             label = (f"{name}-{space}-{strategy}" + ("-appearance" * config.appearance)
                      + (f"-{backbone}" if backbone != "grid" else ""))
             run_dir = args.out / label
+            snapshots = run_dir.with_name(label + "-snapshots")
             if not (run_dir / "checkpoint.pt").exists():
-                train(config, data, stack, run_dir, force=True)
+                if args.curve_points:
+                    config = dataclasses.replace(config, checkpoint_every=max(
+                        1, config.total_iters // args.curve_points))
+                with Snapshots(run_dir / "checkpoint.pt", snapshots):
+                    train(config, data, stack, run_dir, force=True)
             run = load_run(run_dir)
             scores = {}
             for split in SPLITS:
@@ -149,14 +240,20 @@ def main() -> None:
                 if split == "test":
                     error_map(data.images[ids], render, args.out / f"{label}.png")
             seconds = run.record.log[-1]["seconds"]
+            curve = (checkpoint_curve(snapshots, data, data.indices("test"))
+                     if args.curve_points else [])
             results[label] = {"floor": floor, "scores": scores, "seconds": seconds,
-                              "unbounded": run.box.unbounded}
+                              "unbounded": run.box.unbounded, "curve": curve}
             gaps = {s: floor[s]["psnr"] - scores[s]["psnr"] for s in SPLITS}
             print(f"{label} ({'unbounded' if run.box.unbounded else 'box'}): "
                   + ", ".join(f"{s} {scores[s]['psnr']:.2f} dB / SSIM "
                               f"{scores[s]['ssim']:.3f} ({gaps[s]:.2f} dB under the floor)"
                               for s in SPLITS)
                   + f", trained in {seconds:.0f} s", flush=True)
+        if args.curve_points:
+            curve_picture({label[len(name) + 1:]: {"curve": result["curve"]}
+                           for label, result in results.items() if label.startswith(name)},
+                          f"{name}, test views", args.out / f"{name}-curve.png")
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
 
 
