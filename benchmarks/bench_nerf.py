@@ -35,11 +35,13 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
+from bench_scenes import Snapshots
 from bench_simulate import EDITED
 
 from nerf_stage.cli import main as nerf_stage
@@ -88,18 +90,20 @@ def prepare(scene: str, data: Path) -> tuple[Path, Path]:
     return root, stack
 
 
-def scene_run(scene: str, out: Path, config: TrainConfig):
+def scene_run(scene: str, out: Path, config: TrainConfig, snapshots: Path | None = None):
     """The built-in ``scene`` simulated into ``out`` (``prepare``) and its run,
     ``out/<scene>-run`` (``<scene>-<backbone>-run`` for another backbone than the grid),
-    trained with ``config`` unless it is there already; returns the dataset, the run and
-    the weight stack's path."""
+    trained with ``config`` unless it is there already, its checkpoints kept in
+    ``snapshots`` while it trains when given (``bench_scenes.Snapshots``); returns the
+    dataset, the run and the weight stack's path."""
     root, stack_path = prepare(scene, out)
     dataset = load_dataset(root, config.background)
     backbone = "" if config.backbone == "grid" else f"-{config.backbone}"
     rundir = out / f"{scene}{backbone}-run"
     if not (rundir / CHECKPOINT).is_file():
-        train(config, dataset, read_stack(stack_path), rundir, force=True,
-              weights_path=str(stack_path.resolve()))
+        with Snapshots(rundir / CHECKPOINT, snapshots) if snapshots else nullcontext():
+            train(config, dataset, read_stack(stack_path), rundir, force=True,
+                  weights_path=str(stack_path.resolve()))
     return dataset, load_run(rundir), stack_path
 
 

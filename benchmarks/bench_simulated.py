@@ -18,19 +18,24 @@ and after the global edit: ``OUT/simulated.png``.
 
     python benchmarks/bench_simulated.py [--out benchmarks/out/simulated] [--scenes ...]
                                          [--iters P F] [--backbone splats] [--minutes M]
+                                         [--curve-points N]
 
 ``--backbone`` trains another backbone than the default (runs kept apart by name);
-``--minutes`` limits each run's training time, to compare backbones at one budget.
+``--minutes`` limits each run's training time, to compare backbones at one budget;
+``--curve-points N`` keeps about N checkpoints of each run it trains and scores them on the
+test views (``curve`` in the results: training seconds and test PSNR).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from bench_nerf import scene_run, table
+from bench_scenes import checkpoint_curve
 from PIL import Image
 
 from nerf_stage.backbones import BACKBONES
@@ -103,12 +108,19 @@ def main() -> None:
     parser.add_argument("--backbone", default="grid", choices=list(BACKBONES))
     parser.add_argument("--minutes", type=float, default=0.0,
                         help="training time limit of each run (0: none)")
+    parser.add_argument("--curve-points", type=int, default=0,
+                        help="checkpoints of each new run scored on the test views for the "
+                             "PSNR-against-time curve (0: the end alone)")
     args = parser.parse_args()
     iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
     config = TrainConfig(backbone=args.backbone, minutes=args.minutes, **iters)
+    if args.curve_points:
+        config = replace(config, checkpoint_every=max(1, config.total_iters // args.curve_points))
+    name = "" if args.backbone == "grid" else f"-{args.backbone}"
     results, rows, pictures = {}, [], []
     for scene in args.scenes:
-        dataset, run, stack_path = scene_run(scene, args.out, config)
+        snapshots = args.out / f"{scene}{name}-snapshots" if args.curve_points else None
+        dataset, run, stack_path = scene_run(scene, args.out, config, snapshots)
         stack = read_stack(stack_path)
         scores = evaluate(run, dataset, progress=False)
         scores["seconds"] = run.record.log[-1]["seconds"]
@@ -116,6 +128,8 @@ def main() -> None:
         render = test_render(run, dataset)
         materials = material_edits(render, dataset, stack) if run.basis == Basis.TRANSPORT else []
         scores["materials"] = materials
+        if snapshots:
+            scores["curve"] = checkpoint_curve(snapshots, dataset, dataset.indices("test"))
         results[scene] = scores
         edit = scores.get("edit", {})
         lost = [m["material"] for m in materials if not m["response"] >= LOST]
@@ -130,7 +144,6 @@ def main() -> None:
           "(test views)",
           ["scene", "space", "PSNR", "SSIM", "edit PSNR", "edit response per material",
            f"lost (< {LOST})", "train s"], rows)
-    name = "" if args.backbone == "grid" else f"-{args.backbone}"
     (args.out / f"results{name}.json").write_text(json.dumps(results, indent=1))
     figure(pictures, args.out / f"simulated{name}.png")
 
