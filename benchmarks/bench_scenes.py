@@ -23,6 +23,7 @@ and backbone (delete a run folder to train it again).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import itertools
 import json
@@ -216,6 +217,7 @@ def main() -> None:
         floor = {split: noise_floor(data, split) for split in SPLITS}
         print(f"{name}: noise floor " + ", ".join(f"{s} {floor[s]['psnr']:.2f} dB"
                                                   for s in SPLITS), flush=True)
+        curves = {}
         for backbone, space, strategy, appearance in itertools.product(
                 args.backbones, args.spaces, args.strategies, args.appearance):
             iters = dict(zip(("pretrain_iters", "finetune_iters"), args.iters or ()))
@@ -229,7 +231,8 @@ def main() -> None:
                 if args.curve_points:
                     config = dataclasses.replace(config, checkpoint_every=max(
                         1, config.total_iters // args.curve_points))
-                with Snapshots(run_dir / "checkpoint.pt", snapshots):
+                with (Snapshots(run_dir / "checkpoint.pt", snapshots) if args.curve_points
+                      else contextlib.nullcontext()):
                     train(config, data, stack, run_dir, force=True)
             run = load_run(run_dir)
             scores = {}
@@ -250,10 +253,9 @@ def main() -> None:
                               f"{scores[s]['ssim']:.3f} ({gaps[s]:.2f} dB under the floor)"
                               for s in SPLITS)
                   + f", trained in {seconds:.0f} s", flush=True)
+            curves[label[len(name) + 1:]] = {"curve": curve}
         if args.curve_points:
-            curve_picture({label[len(name) + 1:]: {"curve": result["curve"]}
-                           for label, result in results.items() if label.startswith(name)},
-                          f"{name}, test views", args.out / f"{name}-curve.png")
+            curve_picture(curves, f"{name}, test views", args.out / f"{name}-curve.png")
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
 
 
