@@ -7,7 +7,8 @@ the noise floor (the held-out views against the same views rendered under anothe
 seed, ``val_seed2/`` and ``test_seed2/``), decompose its training views (``palette-decompose
 -k 6``), then train per ``--backbones`` x ``--spaces`` x ``--strategies`` and score the held-out
 views, saving an error map of each run's first test views
-(``OUT/SCENE-SPACE-STRATEGY[-BACKBONE].png``: truth, render, absolute error x4). With
+(``OUT/SCENE-SPACE-STRATEGY[-BACKBONE].png``: truth, render, absolute error x4) and of its
+first views on the training path (``...-val.png``). With
 ``--curve-points N``, about N checkpoints of each run are kept while it trains and scored on
 the test views: ``OUT/SCENE-curve.png``, test PSNR against training time for every run of
 the scene.
@@ -240,8 +241,8 @@ def main() -> None:
                 ids = data.indices(split)
                 render = rendered(run, data, ids)
                 scores[split] = image_scores(render, data.images[ids])
-                if split == "test":
-                    error_map(data.images[ids], render, args.out / f"{label}.png")
+                suffix = "" if split == "test" else f"-{split}"
+                error_map(data.images[ids], render, args.out / f"{label}{suffix}.png")
             seconds = run.record.log[-1]["seconds"]
             curve = (checkpoint_curve(snapshots, data, data.indices("test"))
                      if args.curve_points else [])
