@@ -89,7 +89,7 @@ def random_splats(target: SceneTarget, count: int, rng: np.random.Generator,
     size = float(np.ptp(bounds, 0).max())
     q = rng.normal(size=(count, 4))
     m = n_terms(len(run.palette), run.basis, run.order)
-    rest = (rng.normal(0, 0.01, (count, 15, m)).astype(np.float32) if residual else None)
+    rest = rng.normal(0, 0.01, (count, 15, m)).astype(np.float32) if residual else None
     return Splats(rng.uniform(*bounds, (count, 3)).astype(np.float32),
                   rng.uniform(0.002, 0.008, (count, 3)).astype(np.float32) * size,
                   (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
