@@ -343,6 +343,24 @@ def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, 
     assert load_run(tmp_path / "a").record.iteration == 12
 
 
+def test_the_palette_stage_moves_its_window_of_footprints_on(cornell, tmp_path, monkeypatch):
+    """Footprints that do not all fit: the stage draws from the views whose footprints fit
+    (one here) and, after ``WINDOW_VISITS`` steps a view, makes the next views' instead."""
+    monkeypatch.setattr(backbone, "FOOTPRINT_BYTES", 1)
+    monkeypatch.setattr(backbone, "WINDOW_VISITS", 2)
+    starts, made = [], backbone._footprints
+
+    def footprints(run, views, start=0):
+        starts.append(start)
+        return made(run, views, start)
+
+    monkeypatch.setattr(backbone, "_footprints", footprints)
+    flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "4", "--finetune-iters", "6",
+             "--splats-initial", "32", "--splats-patch", "6"]
+    assert main(["train", str(cornell), "-o", str(tmp_path / "run"), *flags]) == 0
+    assert starts == [0, 1, 2]
+
+
 def test_a_splat_run_takes_the_space_a_grid_probe_finds(still_life, tmp_path, monkeypatch):
     """``--space auto`` on transparent images probes both spaces with the grid NeRF, as a
     grid run does: where the scene ends does not depend on the backbone."""

@@ -89,9 +89,12 @@ FAR_SHELL = 1.9
 #: spans half the reach, so that none starts cut off square, nor covers every pixel of a
 #: small view (docs/splats.md, "The start's width").
 START_REACH = 0.2
-#: Bytes of frozen footprints the palette stage keeps (``_footprints``): views past them
-#: are drawn again at each visit.
+#: Bytes of frozen footprints the palette stage keeps (``_footprints``). When the views'
+#: footprints do not all fit, the stage draws from a window of views whose footprints do,
+#: and moves the window on to the next views after ``WINDOW_VISITS`` steps a view in it:
+#: a view drawn afresh at every visit costs a footprint's making each time.
 FOOTPRINT_BYTES = 768 << 20
+WINDOW_VISITS = 8
 
 
 class SplatModel(nn.Module):
@@ -402,7 +405,9 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     log, it = run.record.log, run.record.iteration
     bar = tqdm(desc="train splats", initial=it, total=last, disable=not progress, unit="it")
     clock = time.perf_counter() - (log[-1]["seconds"] if log else 0.0)
-    footprints = None
+    # the palette stage's footprints: their window starts at view ``start``, drawn from
+    # ``visits`` times so far
+    footprints, start, visits = None, 0, 0
     while it < last:
         if it >= config.pretrain_iters and run.kind == RGB:
             views = _palette_views(run, stack, views)
@@ -413,8 +418,15 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
             views = _palette_views(run, stack, views)
         if run.kind != RGB and footprints is None:  # resumed in the palette stage
             footprints = _footprints(run, views)
-        index = int(torch.randint(len(views), (1,), generator=generator))
+        held = [i for i, footprint in enumerate(footprints or ()) if footprint]
+        if held and len(held) < len(views) and visits >= WINDOW_VISITS * len(held):
+            start, footprints = (start + len(held)) % len(views), None  # freed first
+            footprints, visits = _footprints(run, views, start), 0
+            held = [i for i, footprint in enumerate(footprints) if footprint]
+        window = held or range(len(views))  # none held: every view, drawn afresh
+        index = window[int(torch.randint(len(window), (1,), generator=generator))]
         footprint = footprints[index] if footprints else None
+        visits += footprint is not None
         _set_rates(optimiser, config, extent, it, log, last)
         view = views[index] if footprint else _patch(views[index], settings.patch, generator)
         info = {}
@@ -607,13 +619,16 @@ def _csr(rows: torch.Tensor, columns: torch.Tensor, values: torch.Tensor,
                                        columns.int(), values, shape)
 
 
-def _footprints(run: SplatRun, views: list) -> list:
-    """The footprints of ``views`` in their order, while they fit in ``FOOTPRINT_BYTES``
-    (None for the views past them, drawn again at each visit)."""
-    footprints, used = [], 0
-    for view in tqdm(views, desc="footprints", unit="view", leave=False):
-        footprints.append(_footprint(run, view) if used < FOOTPRINT_BYTES else None)
-        used += footprints[-1].nbytes if footprints[-1] else 0
+def _footprints(run: SplatRun, views: list, start: int = 0) -> list:
+    """The footprints of ``views`` in their order from ``start`` on (around to the first),
+    while they fit in ``FOOTPRINT_BYTES``; None for the views past them."""
+    footprints, used = [None] * len(views), 0
+    for n in tqdm(range(len(views)), desc="footprints", unit="view", leave=False):
+        if used >= FOOTPRINT_BYTES:
+            break
+        index = (start + n) % len(views)
+        footprints[index] = _footprint(run, views[index])
+        used += footprints[index].nbytes
     return footprints
 
 
