@@ -389,14 +389,16 @@ def _before_the_palette_stage(run):
     return replace(run, model=SplatModel(tensors, RGB, run.model.degree))
 
 
-def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
-    """A view's footprint draws what the rasteriser draws; training weights that one weight
-    vector makes everywhere start every splat there, from footprints kept or drawn afresh."""
+def test_the_palette_stage_draws_views_from_their_footprints(splat_run, monkeypatch):
+    """A view's footprint, made a band of rows at a time, draws what the rasteriser draws;
+    training weights that one weight vector makes everywhere start every splat there, from
+    footprints kept or drawn afresh."""
     run = load_run(splat_run)
     data = run.dataset()
     ids = data.indices("train")[:6]
     camera, channels = data.camera(ids[0]), run.model.weights.shape[1]
     device = run.model.means.device
+    monkeypatch.setattr(backbone, "BAND_PIXELS", 3 * camera.width + 1)  # bands of 3 rows
     views = backbone._training_views(run, data, ids, np.zeros(
         (len(ids), camera.height, camera.width, channels)), device)
     footprints = backbone._footprints(run, views)
