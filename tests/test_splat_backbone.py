@@ -14,7 +14,7 @@ from nerf_stage.backbones import SplatConfig  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.fields.base import ACTIVATIONS, RGB  # noqa: E402
-from nerf_stage.splats import backbone, read_splats  # noqa: E402
+from nerf_stage.splats import backbone, rasterise, read_splats  # noqa: E402
 from nerf_stage.splats.backbone import GEOMETRY, SplatModel  # noqa: E402
 from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
@@ -75,7 +75,14 @@ def brute_force(means, cov, values, opacities, pose, camera):
     return out, acc
 
 
-def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel():
+@pytest.fixture(params=[None, 3], ids=["whole", "bands-of-3-rows"])
+def bands(request, monkeypatch):
+    """The view's pairs found at once, or a band of 3 rows at a time (``BAND_PIXELS``)."""
+    if request.param:
+        monkeypatch.setattr(rasterise, "BAND_PIXELS", request.param * CAMERA.width)
+
+
+def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel(bands):
     splats = few_splats()
     drawn, acc = draw(*splats, POSE, CAMERA, reach=64)
     out, want = brute_force(*splats, POSE, CAMERA)
@@ -93,7 +100,7 @@ def test_a_window_of_a_view_is_that_part_of_the_whole_view():
                           atol=1e-12)
 
 
-def test_the_rasterisers_gradients_match_finite_differences():
+def test_the_rasterisers_gradients_match_finite_differences(bands):
     means, cov, values, opacities = few_splats(3, seed=1)
     quats = torch.randn(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     scales = torch.full((3, 3), 0.15, dtype=torch.float64)
@@ -389,16 +396,14 @@ def _before_the_palette_stage(run):
     return replace(run, model=SplatModel(tensors, RGB, run.model.degree))
 
 
-def test_the_palette_stage_draws_views_from_their_footprints(splat_run, monkeypatch):
-    """A view's footprint, made a band of rows at a time, draws what the rasteriser draws;
-    training weights that one weight vector makes everywhere start every splat there, from
-    footprints kept or drawn afresh."""
+def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
+    """A view's footprint draws what the rasteriser draws; training weights that one weight
+    vector makes everywhere start every splat there, from footprints kept or drawn afresh."""
     run = load_run(splat_run)
     data = run.dataset()
     ids = data.indices("train")[:6]
     camera, channels = data.camera(ids[0]), run.model.weights.shape[1]
     device = run.model.means.device
-    monkeypatch.setattr(backbone, "BAND_PIXELS", 3 * camera.width + 1)  # bands of 3 rows
     views = backbone._training_views(run, data, ids, np.zeros(
         (len(ids), camera.height, camera.width, channels)), device)
     footprints = backbone._footprints(run, views)

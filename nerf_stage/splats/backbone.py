@@ -95,9 +95,6 @@ START_REACH = 0.2
 #: a view drawn afresh at every visit costs a footprint's making each time.
 FOOTPRINT_BYTES = 768 << 20
 WINDOW_VISITS = 8
-#: Pixels whose pairs a footprint's making draws at once: the drawing's transient memory
-#: (about 100 bytes a pair it tries) grows with them, not with the view's size.
-BAND_PIXELS = 1 << 14
 
 
 class SplatModel(nn.Module):
@@ -591,25 +588,15 @@ class _SparseProduct(torch.autograd.Function):
 
 @torch.no_grad()
 def _footprint(run: SplatRun, view: _View) -> _Footprint:
-    """The footprint of ``view`` (its window) under the run's current geometry, its pairs
-    drawn a band of at most ``BAND_PIXELS`` pixels at a time."""
+    """The footprint of ``view`` (its window) under the run's current geometry."""
     model = run.model
     covariance, opacity = model.gaussians()
-    nothing = model.means.new_zeros(len(model.means), 0)
-    left, top, width, height = view.window
-    rows = max(1, BAND_PIXELS // width)
-    # (pixel, splat, contribution) of the bands' pairs, by pixel; and the (H W,) opacity
-    parts, opacities = [(nothing.new_zeros(0, dtype=torch.long),) * 2 + (nothing.new_zeros(0),)], []
-    for y in range(top, top + height, rows):
-        info = {}
-        _, acc = draw(model.means, covariance, nothing, opacity, view.pose, view.camera,
-                      run.config.splats.reach, info, (left, y, width, min(rows, top + height - y)))
-        opacities.append(acc)
-        if "pairs" in info:
-            pixel, splat, contribution = info["pairs"]
-            parts.append((pixel + (y - top) * width, splat, contribution))
-    pixel, splat, contribution = (torch.cat(part) for part in zip(*parts))
-    pixels, splats = width * height, len(model.means)
+    info = {}
+    _, acc = draw(model.means, covariance, model.means.new_zeros(len(model.means), 0), opacity,
+                  view.pose, view.camera, run.config.splats.reach, info, view.window)
+    pixel, splat, contribution = info.get("pairs", (acc.new_zeros(0, dtype=torch.long),) * 2
+                                          + (acc.new_zeros(0),))
+    pixels, splats = len(acc), len(model.means)
     # pairs by splat, then pixel; and by pixel, then splat (stable sorts of both orders)
     by_splat = torch.sort(splat.int(), stable=True)[1]
     by_pixel = by_splat.index_select(0, torch.sort(pixel.index_select(0, by_splat).int(),
@@ -618,7 +605,7 @@ def _footprint(run: SplatRun, view: _View) -> _Footprint:
                              contribution.index_select(0, order), shape)
                         for rows, columns, order, shape in (
                             (pixel, splat, by_pixel, (pixels, splats)),
-                            (splat, pixel, by_splat, (splats, pixels)))), torch.cat(opacities))
+                            (splat, pixel, by_splat, (splats, pixels)))), acc)
 
 
 def _csr(rows: torch.Tensor, columns: torch.Tensor, values: torch.Tensor,

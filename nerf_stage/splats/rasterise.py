@@ -35,6 +35,9 @@ MAX_ALPHA = 0.99  # no splat is more opaque than this at its peak (3D Gaussian s
 #: for a splat run) are not drawn: their projection's Jacobian grows as 1 / depth^2.
 NEAR = 0.01
 FOV_CLAMP = 1.3  # of the view's half angle, where the Jacobian is taken at most
+#: Pixels of a view whose pairs are found at once (``_band``): the pairs tried are held
+#: for a band, not the view, and their sorts stay short.
+BAND_PIXELS = 1 << 14
 
 
 @torch.no_grad()
@@ -209,40 +212,65 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     # each splat's projection (u, v, conic, opacity), gathered with gradients only for the
     # pairs that show
     table = torch.cat([u[:, None], v[:, None], conic, opacities[:, None]], 1)
+    box = torch.stack([x0, x1, y0, y1, level], 1)
+    rows = max(1, BAND_PIXELS // width)
+    bands = [_band(table.detach(), box, drawn, window, y, min(y + rows, top + height))
+             for y in range(top, top + height, rows)]
+    bands = [band for band in bands if band is not None]
+    if not bands:
+        return None
+    pixel, ids, px, py, light = (torch.cat(part) for part in zip(*bands))
+    return (pixel.long(), index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py),
+            light)
+
+
+@torch.no_grad()
+def _band(table: torch.Tensor, box: torch.Tensor, drawn: torch.Tensor,
+          window: tuple[int, int, int, int], first: int, end: int):
+    """The pairs that show in rows ``first`` to ``end`` (excluded) of the view's ``window``:
+    (pixel of the window, splat, px, py, light in front), sorted by pixel, then front to
+    back; None when there are none. ``table`` (F, 6): each splat's projection (``_alpha``);
+    ``box`` (F, 5): its x0, x1, y0, y1 and the Mahalanobis ``level`` of 1/255; ``drawn``:
+    the splats to draw, front to back. A band at a time, the pairs tried (about 100 bytes
+    each) are held for the band's rows only."""
+    left, top, width, height = window
+    x0, x1, y0, y1, level = box.T
+    y0, y1 = y0.clamp(first, end), y1.clamp(first, end)
+    drawn = drawn[(y1.index_select(0, drawn) > y0.index_select(0, drawn))]
+    if not len(drawn):
+        return None
     # the rows of each splat's box, and in each row the pixels inside its ellipse
     row_splat, py = _spans(drawn, y0.index_select(0, drawn).long(),
                            y1.index_select(0, drawn).long())
-    row_u, row_v, ca, cb, cc, peak = table.detach().index_select(0, row_splat).T
+    row_u, row_v, ca, cb, cc, peak = table.index_select(0, row_splat).T
     row_x0, row_x1, row_level = torch.stack([x0, x1, level], 1).index_select(0, row_splat).T
     dy = py + 0.5 - row_v
     room = (cb * dy) ** 2 - ca * (cc * dy * dy - row_level ** 2)
     half = torch.sqrt(room.clamp(min=0)) / ca
     middle = row_u - 0.5 - cb * dy / ca  # pixel x + 0.5 - u = dx
-    first = torch.maximum(torch.ceil(middle - half), row_x0).long()
-    last = torch.minimum(torch.floor(middle + half), row_x1 - 1).long()
-    row, px = _spans(torch.arange(len(py), device=py.device), first,
-                     torch.where(room >= 0, torch.maximum(last + 1, first), first))
-    with torch.no_grad():  # the pairs that show, sorted by pixel, then front to back
-        # alpha along a row: the row's peak times a Gaussian in px - middle (the ellipse's
-        # quadratic form with the square completed in dx)
-        row_peak = peak * torch.exp(-0.5 * (cc - cb * cb / ca) * dy * dy)
-        at_middle, spread, at_peak = torch.stack([middle, ca, row_peak], 1).index_select(
-            0, row).T
-        alpha = torch.clamp(at_peak * torch.exp(-0.5 * spread * (px - at_middle) ** 2),
-                            max=MAX_ALPHA)
-        alpha = torch.where(alpha >= 1 / 255, alpha, 0)  # no light kept: dropped below
-        pixel = (((py - top) * width - left).index_select(0, row) + px).int()
-        pixel, order = torch.sort(pixel, stable=True)  # by pixel, still front to back
-        alpha = alpha.index_select(0, order)
-        light = _transmittance(pixel, alpha, width * height)
-        # the light kept is a prefix of each pixel's pairs: their light stays as it is
-        kept = torch.nonzero((light >= MIN_TRANSMITTANCE) & (alpha > 0))[:, 0]
-        pixel, light = pixel.index_select(0, kept), light.index_select(0, kept)
-        shown = order.index_select(0, kept)
+    first_x = torch.maximum(torch.ceil(middle - half), row_x0).long()
+    last_x = torch.minimum(torch.floor(middle + half), row_x1 - 1).long()
+    row, px = _spans(torch.arange(len(py), device=py.device), first_x,
+                     torch.where(room >= 0, torch.maximum(last_x + 1, first_x), first_x))
+    # alpha along a row: the row's peak times a Gaussian in px - middle (the ellipse's
+    # quadratic form with the square completed in dx)
+    row_peak = peak * torch.exp(-0.5 * (cc - cb * cb / ca) * dy * dy)
+    at_middle, spread, at_peak = torch.stack([middle, ca, row_peak], 1).index_select(0, row).T
+    alpha = torch.clamp(at_peak * torch.exp(-0.5 * spread * (px - at_middle) ** 2),
+                        max=MAX_ALPHA)
+    alpha = torch.where(alpha >= 1 / 255, alpha, 0)  # no light kept: dropped below
+    pixel = (((py - top) * width - left).index_select(0, row) + px).int()
+    pixel, order = torch.sort(pixel, stable=True)  # by pixel, still front to back
+    alpha = alpha.index_select(0, order)
+    light = _transmittance(pixel, alpha, width * height)
+    # the light kept is a prefix of each pixel's pairs: their light stays as it is
+    kept = torch.nonzero((light >= MIN_TRANSMITTANCE) & (alpha > 0))[:, 0]
+    if not len(kept):
+        return None
+    shown = order.index_select(0, kept)
     row, px = row.index_select(0, shown), px.index_select(0, shown)
-    ids, py = row_splat.index_select(0, row), py.index_select(0, row)
-    return (pixel.long(), index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py),
-            light)
+    return (pixel.index_select(0, kept), row_splat.index_select(0, row), px,
+            py.index_select(0, row), light.index_select(0, kept))
 
 
 def _spans(owners: torch.Tensor, start: torch.Tensor,
