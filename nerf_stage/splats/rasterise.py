@@ -2,8 +2,9 @@
 Gaussians, sorted front to back per pixel, as 3D Gaussian splatting blends them.
 
 A view is a list of (pixel, splat, alpha) pairs: each splat's screen-space ellipse is
-walked row by row, pairs below 1/255 or behind ``MIN_TRANSMITTANCE`` of light are dropped,
-and each pixel's values are the sum of its pairs' transmittance x alpha x values.
+walked row by row (a band of the view's rows at a time), pairs below 1/255 or behind
+``MIN_TRANSMITTANCE`` of light are dropped, and each pixel's values are the sum of its
+pairs' transmittance x alpha x values.
 
 References
 ----------
@@ -228,8 +229,8 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
 def _band(table: torch.Tensor, box: torch.Tensor, drawn: torch.Tensor,
           window: tuple[int, int, int, int], first: int, end: int):
     """The pairs that show in rows ``first`` to ``end`` (excluded) of the view's ``window``:
-    (pixel of the window, splat, px, py, light in front), sorted by pixel, then front to
-    back; None when there are none. ``table`` (F, 6): each splat's projection (``_alpha``);
+    (pixel of the window, splat of ``table``, px, py, light in front), sorted by pixel, then
+    front to back; None when there are none. ``table`` (F, 6): each splat's projection (``_alpha``);
     ``box`` (F, 5): its x0, x1, y0, y1 and the Mahalanobis ``level`` of 1/255; ``drawn``:
     the splats to draw, front to back. A band at a time, the pairs tried (about 100 bytes
     each) are held for the band's rows only."""
