@@ -36,8 +36,10 @@ MAX_ALPHA = 0.99  # no splat is more opaque than this at its peak (3D Gaussian s
 #: for a splat run) are not drawn: their projection's Jacobian grows as 1 / depth^2.
 NEAR = 0.01
 FOV_CLAMP = 1.3  # of the view's half angle, where the Jacobian is taken at most
-#: Pixels of a view whose pairs are found at once (``_band``): the pairs tried are held
-#: for a band, not the view, and their sorts stay short.
+#: Pixels of a view whose pairs are found at once on a CPU (``_band``): the pairs tried are
+#: held for a band, not the view, and their sorts stay short (docs/splats.md, "The view's
+#: pairs found a band at a time"). On CUDA a view is one band: its memory holds the pairs,
+#: and every band would add its kernel launches and synchronisations to a step.
 BAND_PIXELS = 1 << 14
 
 
@@ -214,7 +216,7 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     # pairs that show
     table = torch.cat([u[:, None], v[:, None], conic, opacities[:, None]], 1)
     box = torch.stack([x0, x1, y0, y1, level], 1)
-    rows = max(1, BAND_PIXELS // width)
+    rows = height if centres.is_cuda else max(1, BAND_PIXELS // width)
     bands = [_band(table.detach(), box, drawn, window, y, min(y + rows, top + height))
              for y in range(top, top + height, rows)]
     bands = [band for band in bands if band is not None]
