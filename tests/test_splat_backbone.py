@@ -398,7 +398,7 @@ def _before_the_palette_stage(run):
 
 def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
     """A view's footprint draws what the rasteriser draws; training weights that one weight
-    vector makes everywhere start every splat there, from footprints kept or drawn afresh."""
+    vector makes everywhere start every splat there."""
     run = load_run(splat_run)
     data = run.dataset()
     ids = data.indices("train")[:6]
@@ -423,14 +423,13 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
     one = one.to(device)
     views = [replace(v, weights=(f.opacity[:, None] * one).view(v.weights.shape))
              for v, f in zip(views, footprints)]
-    for kept in (footprints, [None] * len(views)):
-        started = _before_the_palette_stage(run)
-        backbone._start_palette(started, views, kept)
-        assert not started.model.means.requires_grad
-        weights = ACTIVATIONS[started.kind](started.model.weights.detach())
-        for view, footprint in zip(views, footprints):
-            assert torch.allclose(footprint.matrix @ weights, view.weights.view(-1, channels),
-                                  atol=1e-4)
+    started = _before_the_palette_stage(run)
+    backbone._start_palette(started, views)
+    assert not started.model.means.requires_grad
+    weights = ACTIVATIONS[started.kind](started.model.weights.detach())
+    for view, footprint in zip(views, footprints):
+        assert torch.allclose(footprint.matrix @ weights, view.weights.view(-1, channels),
+                              atol=1e-4)
 
 
 def test_a_checkpoint_with_splats_of_the_wrong_shape_is_refused(splat_run, tmp_path, capsys):

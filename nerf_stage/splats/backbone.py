@@ -411,8 +411,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     while it < last:
         if it >= config.pretrain_iters and run.kind == RGB:
             views = _palette_views(run, stack, views)
+            _start_palette(run, views)
             footprints = _footprints(run, views)
-            _start_palette(run, views, footprints)
             optimiser = _optimiser(run, extent)
         elif run.kind != RGB and it % config.checkpoint_every == 0:
             views = _palette_views(run, stack, views)
@@ -587,8 +587,9 @@ class _SparseProduct(torch.autograd.Function):
 
 
 @torch.no_grad()
-def _footprint(run: SplatRun, view: _View) -> _Footprint:
-    """The footprint of ``view`` (its window) under the run's current geometry."""
+def _view_pairs(run: SplatRun, view: _View) -> tuple[torch.Tensor, ...]:
+    """The (P,) pixel, splat and contribution (transmittance x alpha) of ``view``'s (its
+    window's) pairs under the run's current geometry, by pixel, and its (H W,) opacity."""
     model = run.model
     covariance, opacity = model.gaussians()
     info = {}
@@ -596,7 +597,13 @@ def _footprint(run: SplatRun, view: _View) -> _Footprint:
                   view.pose, view.camera, run.config.splats.reach, info, view.window)
     pixel, splat, contribution = info.get("pairs", (acc.new_zeros(0, dtype=torch.long),) * 2
                                           + (acc.new_zeros(0),))
-    pixels, splats = len(acc), len(model.means)
+    return pixel, splat, contribution, acc
+
+
+def _footprint(run: SplatRun, view: _View) -> _Footprint:
+    """The footprint of ``view`` (its window) under the run's current geometry."""
+    pixel, splat, contribution, acc = _view_pairs(run, view)
+    pixels, splats = len(acc), len(run.model.means)
     # pairs by splat, then pixel; and by pixel, then splat (stable sorts of both orders)
     by_splat = torch.sort(splat.int(), stable=True)[1]
     by_pixel = by_splat.index_select(0, torch.sort(pixel.index_select(0, by_splat).int(),
@@ -633,22 +640,23 @@ def _footprints(run: SplatRun, views: list, start: int = 0) -> list:
 
 
 @torch.no_grad()
-def _start_palette(run: SplatRun, views: list, footprints: list) -> None:
+def _start_palette(run: SplatRun, views: list) -> None:
     """Freeze the geometry and start each splat's weights at the mean of the training
     weights it sends light to, weighted by that light (each pixel's weights over its
-    opacity, from the views' ``footprints`` or drawn afresh); transport weights are
-    averaged tone-mapped, as the weight loss compares them, so that a splat on an emitter's
-    edge does not start at its radiance; a splat no view sees starts at the mean weights."""
+    opacity, from each view's pairs drawn afresh, before any footprint is held); transport
+    weights are averaged tone-mapped, as the weight loss compares them, so that a splat on
+    an emitter's edge does not start at its radiance; a splat no view sees starts at the
+    mean weights."""
     model = run.model
     channels = views[0].weights.shape[-1]
     transport = run.basis == Basis.TRANSPORT
     light = model.means.new_zeros(len(model.means), channels + 1)  # weights, then light
-    for view, footprint in zip(views, footprints):
-        footprint = footprint or _footprint(run, view)
-        straight = view.weights.view(-1, channels) / footprint.opacity[:, None].clamp(min=1e-6)
+    for view in views:
+        pixel, splat, contribution, opacity = _view_pairs(run, view)
+        straight = view.weights.view(-1, channels) / opacity[:, None].clamp(min=1e-6)
         straight = tone_map(straight) if transport else straight
-        light += footprint.transposed @ torch.cat([straight, torch.ones_like(straight[:, :1])],
-                                                  1)
+        sent = torch.cat([straight, torch.ones_like(straight[:, :1])], 1)  # (H W, M + 1)
+        light.index_add_(0, splat, contribution[:, None] * sent.index_select(0, pixel))
     mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
     weights = light[:, :-1] / light[:, -1:].clamp(min=1e-6)
     weights = inverse_tone_map(weights.clamp(max=1 - 1e-6)) if transport else weights
