@@ -130,7 +130,7 @@ def test_the_reported_pairs_make_up_the_view():
     palette stage's start and the regions read."""
     means, cov, values, opacities = few_splats()
     info = {}
-    drawn, acc = draw(means, cov, values, opacities, POSE, CAMERA, 64, info)
+    drawn, acc = draw(means, cov, values, opacities, POSE, CAMERA, 64, info, keep_pairs=True)
     pixel, splat, contribution = info["pairs"]
     rebuilt = torch.zeros_like(drawn).index_add(0, pixel, contribution[:, None] * values[splat])
     assert torch.allclose(rebuilt, drawn, atol=1e-12)

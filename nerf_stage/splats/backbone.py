@@ -196,7 +196,8 @@ class SplatRun(RunBase):
             local = normalised_pose(pose, self.box, self.device)
             info = {}
             drawn, acc = draw(self.model.means, covariance, self.model.values(local[:3, 3]),
-                              opacity, local, camera, self.config.splats.reach, info)
+                              opacity, local, camera, self.config.splats.reach, info,
+                              keep_pairs=samples)
             values.append(drawn.view(camera.height, camera.width, -1).cpu().numpy())
             accs.append(acc.view(camera.height, camera.width).cpu().numpy())
             if samples and "pairs" in info:
@@ -594,7 +595,8 @@ def _view_pairs(run: SplatRun, view: _View) -> tuple[torch.Tensor, ...]:
     covariance, opacity = model.gaussians()
     info = {}
     _, acc = draw(model.means, covariance, model.means.new_zeros(len(model.means), 0), opacity,
-                  view.pose, view.camera, run.config.splats.reach, info, view.window)
+                  view.pose, view.camera, run.config.splats.reach, info, view.window,
+                  keep_pairs=True)
     pixel, splat, contribution = info.get("pairs", (acc.new_zeros(0, dtype=torch.long),) * 2
                                           + (acc.new_zeros(0),))
     return pixel, splat, contribution, acc

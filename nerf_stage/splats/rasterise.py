@@ -16,6 +16,9 @@ Z. Yu et al. Mip-Splatting: alias-free 3D Gaussian splatting. CVPR 2024 (the 2D 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -78,7 +81,8 @@ def splat_tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
 
 def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: Intrinsics,
          reach: int = 32, info: dict | None = None,
-         window: tuple[int, int, int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+         window: tuple[int, int, int, int] | None = None,
+         keep_pairs: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
     splats' parameters), each splat drawn at most ``reach`` pixels from its centre; with a
     ``window`` (x, y, width, height) of the view, that part of it only (W x H of it).
@@ -86,57 +90,123 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     With an ``info`` dict, it receives what densification needs: ``means2d`` (F, 2), the
     pixel positions of the F splats in front of the camera (gradients retained), their
     indices ``front`` (F,), ``drawn`` (D,), the splats with a pixel in the view, and
-    ``clipped``, those in the view wider than ``reach`` (drawn cut off); and
-    ``pairs``: (P,) pixel, splat and contribution (transmittance x alpha) of every pair
-    drawn, by pixel, front to back."""
+    ``clipped``, those in the view wider than ``reach`` (drawn cut off); with
+    ``keep_pairs`` too (a draw without gradients), ``pairs``: (P,) pixel, splat and
+    contribution (transmittance x alpha) of every pair drawn, by pixel, front to back."""
     window = window or (0, 0, camera.width, camera.height)
     pixels = window[2] * window[3]
-    pairs = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
-    if info is not None:
-        info["drawn"] = (torch.nonzero(torch.bincount(pairs[1], minlength=len(centres)))[:, 0]
-                         if pairs is not None
-                         else torch.zeros(0, dtype=torch.long, device=centres.device))
-    if pairs is None:
+    found = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
+    if found is None:
+        if info is not None:
+            info["drawn"] = torch.zeros(0, dtype=torch.long, device=centres.device)
         return values.new_zeros(pixels, values.shape[1]), values.new_zeros(pixels)
-    pixel, splat, alpha, light = pairs
+    table, index, pixel, ids, light, counts = found
     if info is not None:
-        info["pairs"] = pixel, splat, light * alpha.detach()
-    return _Composite.apply(alpha, values, pixel, splat, light, pixels)
+        info["drawn"] = index.index_select(0, torch.nonzero(
+            torch.bincount(ids, minlength=len(index)))[:, 0])
+    if not keep_pairs:
+        return _Composite.apply(table, values, index, pixel, ids, light, counts, window)
+    with torch.no_grad():  # the blend from the pairs, which are kept
+        pixel, splat = pixel.long(), index.index_select(0, ids)
+        contribution = light * _alpha(table.index_select(0, ids), *_position(pixel, window))[0]
+        info["pairs"] = pixel, splat, contribution
+        return (values.new_zeros(pixels, values.shape[1]).index_add_(
+                    0, pixel, contribution[:, None] * values.index_select(0, splat)),
+                values.new_zeros(pixels).index_add_(0, pixel, contribution))
 
 
 class _Composite(torch.autograd.Function):
-    """(pixels, M) values and (pixels,) opacity blended from the pairs (``pixel``, ``splat``,
-    ``alpha``), sorted by pixel, then front to back, with ``light`` (P,) the transmittance
-    in front of each. Its backward is 3D Gaussian splatting's: d/d alpha_i of a pixel's sum
-    is light_i x q_i minus what the pairs behind i send, over 1 - alpha_i (q: the upstream
-    gradient's product with the pair's values, plus the opacity's), without autograd's
-    record of every per-pair product."""
+    """(pixels, M) values and (pixels,) opacity of a view's ``window``, blended from its
+    pairs: (P,) ``pixel`` (of the window) and ``ids`` (of the projections ``table``, (F, 6):
+    ``_alpha``'s; of the splats ``index``), sorted by pixel, then front to back, with
+    ``light`` (P,) the transmittance in front of each; ``counts``: the pairs of each band.
+
+    Only the pairs' pixel, projection and light are kept for the backward (12 bytes a
+    pair): alpha and the blend are made again a band at a time (``_blends``), so that what a
+    step holds grows with its pairs by that much and no more. The backward is 3D Gaussian
+    splatting's: d/d alpha_i of a pixel's sum is light_i x q_i minus what the pairs behind i
+    send, over 1 - alpha_i (q: the upstream gradient's product with the pair's values, plus
+    the opacity's), then through ``_alpha`` by hand."""
 
     @staticmethod
-    def forward(ctx, alpha, values, pixel, splat, light, pixels: int):
-        contribution = light * alpha
-        drawn = values.new_zeros(pixels, values.shape[1]).index_add_(
-            0, pixel, contribution[:, None] * values.index_select(0, splat))
-        ctx.save_for_backward(alpha, values, pixel, splat, light)
-        return drawn, values.new_zeros(pixels).index_add_(0, pixel, contribution)
+    def forward(ctx, table, values, index, pixel, ids, light, counts, window):
+        pixels = window[2] * window[3]
+        drawn, opacity = values.new_zeros(pixels, values.shape[1]), values.new_zeros(pixels)
+        for blend in _blends(table, index, pixel, ids, light, counts, window):
+            contribution = blend.light * blend.alpha
+            drawn.index_add_(0, blend.pixel,
+                             contribution[:, None] * values.index_select(0, blend.splat))
+            opacity.index_add_(0, blend.pixel, contribution)
+        ctx.save_for_backward(table, values, index, pixel, ids, light)
+        ctx.counts, ctx.window = counts, window
+        return drawn, opacity
 
     @staticmethod
     def backward(ctx, grad_drawn, grad_opacity):
-        alpha, values, pixel, splat, light = ctx.saved_tensors
-        upstream = grad_drawn.index_select(0, pixel)  # (P, M)
-        contribution = light * alpha
-        grad_values = torch.zeros_like(values).index_add_(0, splat,
-                                                          contribution[:, None] * upstream)
-        if not ctx.needs_input_grad[0]:  # the geometry is frozen
-            return None, grad_values, None, None, None, None
-        q = ((upstream * values.index_select(0, splat)).sum(1)
-             + grad_opacity.index_select(0, pixel))
-        # what the pairs behind each one send: its pixel's running sum at its last pair, less
-        # its own
-        running = torch.cumsum((contribution * q).double(), 0)
-        last = _first_pair(pixel, len(grad_opacity), last=True)
-        behind = (running.index_select(0, last) - running).to(alpha.dtype)
-        return light * q - behind / (1 - alpha), grad_values, None, None, None, None
+        table, values, index, pixel, ids, light = ctx.saved_tensors
+        geometry = ctx.needs_input_grad[0]  # False: the geometry is frozen
+        grad_values = torch.zeros_like(values)
+        grad_table = torch.zeros_like(table) if geometry else None
+        for blend in _blends(table, index, pixel, ids, light, ctx.counts, ctx.window):
+            upstream = grad_drawn.index_select(0, blend.pixel)  # (p, M)
+            contribution = blend.light * blend.alpha
+            grad_values.index_add_(0, blend.splat, contribution[:, None] * upstream)
+            if not geometry:
+                continue
+            q = ((upstream * values.index_select(0, blend.splat)).sum(1)
+                 + grad_opacity.index_select(0, blend.pixel))
+            # what the pairs behind each one send: its pixel's running sum at its last pair,
+            # less its own (a band's pairs are whole pixels')
+            running = torch.cumsum((contribution * q).double(), 0)
+            local = blend.pixel - blend.pixel[0]
+            last = _first_pair(local, int(local[-1]) + 1, last=True)
+            behind = (running.index_select(0, last) - running).to(q.dtype)
+            grad_alpha = blend.light * q - behind / (1 - blend.alpha)
+            # through the clamp at MAX_ALPHA, the peak opacity and the Gaussian's exponent
+            u, v, a, b, c, peak = blend.rows.unbind(1)
+            dx, dy = blend.dx, blend.dy
+            grad_peak = torch.where(blend.alpha < MAX_ALPHA, grad_alpha * blend.gaussian, 0)
+            grad_power = grad_peak * peak
+            grad_table.index_add_(0, blend.ids, torch.stack([
+                grad_power * (a * dx + b * dy), grad_power * (b * dx + c * dy),
+                -0.5 * grad_power * dx * dx, -grad_power * dx * dy,
+                -0.5 * grad_power * dy * dy, grad_peak], 1))
+        return grad_table, grad_values, None, None, None, None, None, None
+
+
+class _Blend(NamedTuple):
+    """One band's pairs made again from what ``_Composite`` keeps: (p,) pixel (of the
+    window), projection (of the table) and splat indices, light in front, alpha; (p, 6)
+    rows of the table; (p,) offsets dx, dy from the splat's centre and its Gaussian
+    (``_alpha``)."""
+
+    pixel: torch.Tensor
+    ids: torch.Tensor
+    splat: torch.Tensor
+    light: torch.Tensor
+    alpha: torch.Tensor
+    rows: torch.Tensor
+    dx: torch.Tensor
+    dy: torch.Tensor
+    gaussian: torch.Tensor
+
+
+def _blends(table, index, pixel, ids, light, counts, window) -> Iterator[_Blend]:
+    """``_Composite``'s pairs, a band (of ``counts``) at a time."""
+    first = 0
+    for count in counts:
+        part, band = pixel[first:first + count].long(), ids[first:first + count].long()
+        rows = table.index_select(0, band)
+        alpha, dx, dy, gaussian = _alpha(rows, *_position(part, window))
+        yield _Blend(part, band, index.index_select(0, band), light[first:first + count], alpha,
+                     rows, dx, dy, gaussian)
+        first += count
+
+
+def _position(pixel: torch.Tensor, window: tuple[int, int, int, int]):
+    """(P,) x and (P,) y in the view of pixels of its ``window`` (x, y, width, height)."""
+    left, top, width, _ = window
+    return pixel % width + left, torch.div(pixel, width, rounding_mode="floor") + top
 
 
 def _first_pair(pixel: torch.Tensor, pixels: int, last: bool = False) -> torch.Tensor:
@@ -222,9 +292,8 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     bands = [band for band in bands if band is not None]
     if not bands:
         return None
-    pixel, ids, px, py, light = (torch.cat(part) for part in zip(*bands))
-    return (pixel.long(), index.index_select(0, ids), _alpha(table.index_select(0, ids), px, py),
-            light)
+    pixel, ids, light = (torch.cat(part) for part in zip(*bands))
+    return table, index, pixel, ids, light, tuple(len(band[0]) for band in bands)
 
 
 @torch.no_grad()
@@ -270,10 +339,9 @@ def _band(table: torch.Tensor, box: torch.Tensor, drawn: torch.Tensor,
     kept = torch.nonzero((light >= MIN_TRANSMITTANCE) & (alpha > 0))[:, 0]
     if not len(kept):
         return None
-    shown = order.index_select(0, kept)
-    row, px = row.index_select(0, shown), px.index_select(0, shown)
-    return (pixel.index_select(0, kept), row_splat.index_select(0, row), px,
-            py.index_select(0, row), light.index_select(0, kept))
+    row = row.index_select(0, order.index_select(0, kept))
+    return (pixel.index_select(0, kept), row_splat.index_select(0, row).int(),
+            light.index_select(0, kept))
 
 
 def _spans(owners: torch.Tensor, start: torch.Tensor,
@@ -287,13 +355,12 @@ def _spans(owners: torch.Tensor, start: torch.Tensor,
     return owners.index_select(0, which), start.index_select(0, which) + offset
 
 
-def _alpha(pairs: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
-    """(P,) opacity at pixels (``px``, ``py``) of splats projected as ``pairs`` (P, 6): centre
-    u, v, inverse covariance (a, b, c), peak opacity. (Unbound at once: a backward through
-    six column selections would zero and fill a (P, 6) gradient for each.)"""
-    u, v, a, b, c, peak = pairs.unbind(1)
+def _alpha(rows: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """(P,) opacity at pixels (``px``, ``py``) of splats projected as ``rows`` (P, 6): centre
+    u, v, inverse covariance (a, b, c), peak opacity; and the offsets dx, dy and the
+    Gaussian exp(-d^T (a b; b c) d / 2) that make it."""
+    u, v, a, b, c, peak = rows.unbind(1)
     dx = px + 0.5 - u
     dy = py + 0.5 - v
-    power = -0.5 * (a * dx * dx + 2 * b * dx * dy + c * dy * dy)
-    return torch.clamp(peak * torch.exp(power), max=MAX_ALPHA)
-
+    gaussian = torch.exp(-0.5 * (a * dx * dx + 2 * b * dx * dy + c * dy * dy))
+    return torch.clamp(peak * gaussian, max=MAX_ALPHA), dx, dy, gaussian
