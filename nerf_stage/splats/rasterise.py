@@ -300,11 +300,11 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
 def _band(table: torch.Tensor, box: torch.Tensor, drawn: torch.Tensor,
           window: tuple[int, int, int, int], first: int, end: int):
     """The pairs that show in rows ``first`` to ``end`` (excluded) of the view's ``window``:
-    (pixel of the window, splat of ``table``, px, py, light in front), sorted by pixel, then
-    front to back; None when there are none. ``table`` (F, 6): each splat's projection
-    (``_alpha``); ``box`` (F, 5): its x0, x1, y0, y1 and the Mahalanobis ``level`` of 1/255;
-    ``drawn``: the splats to draw, front to back. A band at a time, the pairs tried are held
-    for the band's rows only."""
+    (P,) int32 pixel of the window, int32 splat of ``table`` and the light in front,
+    sorted by pixel, then front to back; None when there are none. ``table`` (F, 6): each
+    splat's projection (``_alpha``); ``box`` (F, 5): its x0, x1, y0, y1 and the Mahalanobis
+    ``level`` of 1/255; ``drawn``: the splats to draw, front to back. A band at a time, the
+    pairs tried are held for the band's rows only."""
     left, top, width, height = window
     x0, x1, y0, y1, level = box.T
     y0, y1 = y0.clamp(first, end), y1.clamp(first, end)
