@@ -95,6 +95,7 @@ START_REACH = 0.2
 #: a view drawn afresh at every visit costs a footprint's making each time.
 FOOTPRINT_BYTES = 768 << 20
 WINDOW_VISITS = 8
+PAIRS_AT_ONCE = 1 << 20  # a view's pairs whose (pairs, channels) products are made at once
 
 
 class SplatModel(nn.Module):
@@ -597,7 +598,7 @@ def _view_pairs(run: SplatRun, view: _View) -> tuple[torch.Tensor, ...]:
     _, acc = draw(model.means, covariance, model.means.new_zeros(len(model.means), 0), opacity,
                   view.pose, view.camera, run.config.splats.reach, info, view.window,
                   keep_pairs=True)
-    pixel, splat, contribution = info.get("pairs", (acc.new_zeros(0, dtype=torch.long),) * 2
+    pixel, splat, contribution = info.get("pairs", (acc.new_zeros(0, dtype=torch.int),) * 2
                                           + (acc.new_zeros(0),))
     return pixel, splat, contribution, acc
 
@@ -606,26 +607,38 @@ def _footprint(run: SplatRun, view: _View) -> _Footprint:
     """The footprint of ``view`` (its window) under the run's current geometry."""
     pixel, splat, contribution, acc = _view_pairs(run, view)
     pixels, splats = len(acc), len(run.model.means)
-    # pairs by splat, then pixel; and by pixel, then splat (stable sorts of both orders)
-    by_splat = torch.sort(splat.int(), stable=True)[1]
-    by_pixel = by_splat.index_select(0, torch.sort(pixel.index_select(0, by_splat).int(),
-                                                   stable=True)[1])
-    return _Footprint(*(_csr(rows.index_select(0, order), columns.index_select(0, order),
-                             contribution.index_select(0, order), shape)
-                        for rows, columns, order, shape in (
-                            (pixel, splat, by_pixel, (pixels, splats)),
-                            (splat, pixel, by_splat, (splats, pixels)))), acc)
+    # by splat, then pixel (the pairs come by pixel); then by pixel, then splat from it
+    transposed = _csr(splat, pixel, contribution, (splats, pixels))
+    del pixel, splat, contribution
+    splat = torch.repeat_interleave(
+        torch.arange(splats, dtype=torch.int32, device=acc.device),
+        torch.diff(transposed.crow_indices()).long())
+    return _Footprint(_csr(transposed.col_indices(), splat, transposed.values(),
+                           (pixels, splats)), transposed, acc)
 
 
 def _csr(rows: torch.Tensor, columns: torch.Tensor, values: torch.Tensor,
          shape: tuple[int, int]) -> torch.Tensor:
-    """A sparse CSR matrix with 32-bit indices from distinct (row, column, value) triplets
-    sorted by row, then column."""
-    ends = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
+    """A sparse CSR matrix with 32-bit indices from distinct (P,) (row, column, value)
+    triplets sorted by column within each row, a row's triplets taken in their order: a
+    counting sort by row (stable), ``PAIRS_AT_ONCE`` triplets at a time, so that it holds
+    the matrix and a part's sort, not a sort of every triplet."""
+    counts = torch.bincount(rows, minlength=shape[0])
+    ends = torch.cumsum(counts, 0)
+    free = ends - counts  # each row's next place
+    sorted_columns, sorted_values = torch.empty_like(columns), torch.empty_like(values)
+    for first in range(0, len(rows), PAIRS_AT_ONCE):
+        part = slice(first, first + PAIRS_AT_ONCE)
+        row, order = torch.sort(rows[part], stable=True)
+        place = (free.index_select(0, row) + torch.arange(len(row), device=row.device)
+                 - torch.searchsorted(row, row))  # its row's next place, plus its rank
+        sorted_columns[place] = columns[part].index_select(0, order)
+        sorted_values[place] = values[part].index_select(0, order)
+        free += torch.bincount(row, minlength=shape[0])
     with warnings.catch_warnings():  # torch calls its sparse CSR support beta
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(torch.cat([ends.new_zeros(1), ends]).int(),
-                                       columns.int(), values, shape)
+                                       sorted_columns.int(), sorted_values, shape)
 
 
 def _footprints(run: SplatRun, views: list, start: int = 0) -> list:
@@ -658,7 +671,10 @@ def _start_palette(run: SplatRun, views: list) -> None:
         straight = view.weights.view(-1, channels) / opacity[:, None].clamp(min=1e-6)
         straight = tone_map(straight) if transport else straight
         sent = torch.cat([straight, torch.ones_like(straight[:, :1])], 1)  # (H W, M + 1)
-        light.index_add_(0, splat, contribution[:, None] * sent.index_select(0, pixel))
+        for first in range(0, len(pixel), PAIRS_AT_ONCE):  # (pairs, M + 1) a part at a time
+            part = slice(first, first + PAIRS_AT_ONCE)
+            light.index_add_(0, splat[part], contribution[part, None]
+                             * sent.index_select(0, pixel[part]))
     mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
     weights = light[:, :-1] / light[:, -1:].clamp(min=1e-6)
     weights = inverse_tone_map(weights.clamp(max=1 - 1e-6)) if transport else weights

@@ -91,8 +91,8 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     pixel positions of the F splats in front of the camera (gradients retained), their
     indices ``front`` (F,), ``drawn`` (D,), the splats with a pixel in the view, and
     ``clipped``, those in the view wider than ``reach`` (drawn cut off); with
-    ``keep_pairs`` too (a draw without gradients), ``pairs``: (P,) pixel, splat and
-    contribution (transmittance x alpha) of every pair drawn, by pixel, front to back."""
+    ``keep_pairs`` too (a draw without gradients), ``pairs``: (P,) int32 pixel, int32 splat
+    and contribution (transmittance x alpha) of every pair drawn, by pixel, front to back."""
     window = window or (0, 0, camera.width, camera.height)
     pixels = window[2] * window[3]
     found = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
@@ -106,13 +106,11 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
             torch.bincount(ids, minlength=len(index)))[:, 0])
     if not keep_pairs:
         return _Composite.apply(table, values, index, pixel, ids, light, counts, window)
-    with torch.no_grad():  # the blend from the pairs, which are kept
-        pixel, splat = pixel.long(), index.index_select(0, ids)
-        contribution = light * _alpha(table.index_select(0, ids), *_position(pixel, window))[0]
-        info["pairs"] = pixel, splat, contribution
-        return (values.new_zeros(pixels, values.shape[1]).index_add_(
-                    0, pixel, contribution[:, None] * values.index_select(0, splat)),
-                values.new_zeros(pixels).index_add_(0, pixel, contribution))
+    kept = []
+    with torch.no_grad():
+        blended = _blend(table, values, index, pixel, ids, light, counts, window, kept)
+    info["pairs"] = tuple(torch.cat(part) for part in zip(*kept))
+    return blended
 
 
 class _Composite(torch.autograd.Function):
@@ -130,16 +128,9 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, table, values, index, pixel, ids, light, counts, window):
-        pixels = window[2] * window[3]
-        drawn, opacity = values.new_zeros(pixels, values.shape[1]), values.new_zeros(pixels)
-        for blend in _blends(table, index, pixel, ids, light, counts, window):
-            contribution = blend.light * blend.alpha
-            drawn.index_add_(0, blend.pixel,
-                             contribution[:, None] * values.index_select(0, blend.splat))
-            opacity.index_add_(0, blend.pixel, contribution)
         ctx.save_for_backward(table, values, index, pixel, ids, light)
         ctx.counts, ctx.window = counts, window
-        return drawn, opacity
+        return _blend(table, values, index, pixel, ids, light, counts, window)
 
     @staticmethod
     def backward(ctx, grad_drawn, grad_opacity):
@@ -175,7 +166,7 @@ class _Composite(torch.autograd.Function):
 
 
 class _Blend(NamedTuple):
-    """One band's pairs made again from what ``_Composite`` keeps: (p,) pixel (of the
+    """One band's pairs made again from what ``_Composite`` keeps: (p,) int32 pixel (of the
     window), projection (of the table) and splat indices, light in front, alpha; (p, 6)
     rows of the table; (p,) offsets dx, dy from the splat's centre and its Gaussian
     (``_alpha``)."""
@@ -195,12 +186,28 @@ def _blends(table, index, pixel, ids, light, counts, window) -> Iterator[_Blend]
     """``_Composite``'s pairs, a band (of ``counts``) at a time."""
     first = 0
     for count in counts:
-        part, band = pixel[first:first + count].long(), ids[first:first + count].long()
+        part, band = pixel[first:first + count], ids[first:first + count]
         rows = table.index_select(0, band)
         alpha, dx, dy, gaussian = _alpha(rows, *_position(part, window))
-        yield _Blend(part, band, index.index_select(0, band), light[first:first + count], alpha,
-                     rows, dx, dy, gaussian)
+        yield _Blend(part, band, index.index_select(0, band).int(), light[first:first + count],
+                     alpha, rows, dx, dy, gaussian)
         first += count
+
+
+def _blend(table, values, index, pixel, ids, light, counts, window,
+           kept: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_Composite``'s (pixels, M) values and (pixels,) opacity, a band at a time; each
+    band's (p,) pixel, splat and contribution appended to ``kept`` when given."""
+    pixels = window[2] * window[3]
+    drawn, opacity = values.new_zeros(pixels, values.shape[1]), values.new_zeros(pixels)
+    for blend in _blends(table, index, pixel, ids, light, counts, window):
+        contribution = blend.light * blend.alpha
+        drawn.index_add_(0, blend.pixel,
+                         contribution[:, None] * values.index_select(0, blend.splat))
+        opacity.index_add_(0, blend.pixel, contribution)
+        if kept is not None:
+            kept.append((blend.pixel, blend.splat, contribution))
+    return drawn, opacity
 
 
 def _position(pixel: torch.Tensor, window: tuple[int, int, int, int]):
