@@ -396,9 +396,13 @@ def _before_the_palette_stage(run):
     return replace(run, model=SplatModel(tensors, RGB, run.model.degree))
 
 
-def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
-    """A view's footprint draws what the rasteriser draws; training weights that one weight
-    vector makes everywhere start every splat there."""
+@pytest.mark.parametrize("at_once", [None, 7], ids=["whole", "parts-of-7-pairs"])
+def test_the_palette_stage_draws_views_from_their_footprints(splat_run, at_once, monkeypatch):
+    """A view's footprint draws what the rasteriser draws, its matrices sorted whether
+    their counting sorts take the pairs at once or in parts; training weights that one
+    weight vector makes everywhere start every splat there."""
+    if at_once:
+        monkeypatch.setattr(backbone, "PAIRS_AT_ONCE", at_once)
     run = load_run(splat_run)
     data = run.dataset()
     ids = data.indices("train")[:6]
@@ -415,6 +419,9 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run):
     assert torch.allclose(footprints[0].opacity, acc, atol=1e-6)  # a GPU's sums: any order
     values.requires_grad_(True)  # the backward goes through the transposed matrix
     footprints[0].draw(values).square().sum().backward()
+    for m in (footprints[0].matrix, footprints[0].transposed):  # sorted, distinct columns
+        torch.sparse_csr_tensor(m.crow_indices(), m.col_indices(), m.values(), m.shape,
+                                check_invariants=True)
     dense = footprints[0].matrix.to_dense()
     assert torch.equal(footprints[0].transposed.to_dense(), dense.T)
     assert torch.allclose(values.grad, 2 * dense.T @ (dense @ values.detach()), atol=1e-5)
