@@ -422,7 +422,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
             footprints = _footprints(run, views)
         held = [i for i, footprint in enumerate(footprints or ()) if footprint]
         if held and len(held) < len(views) and visits >= WINDOW_VISITS * len(held):
-            start, footprints = (start + len(held)) % len(views), None  # freed first
+            # the window's footprints freed first, the one last drawn from too
+            start, footprints, footprint = (start + len(held)) % len(views), None, None
             footprints, visits = _footprints(run, views, start), 0
             held = [i for i, footprint in enumerate(footprints) if footprint]
         window = held or range(len(views))  # none held: every view, drawn afresh
@@ -643,14 +644,16 @@ def _csr(rows: torch.Tensor, columns: torch.Tensor, values: torch.Tensor,
 
 def _footprints(run: SplatRun, views: list, start: int = 0) -> list:
     """The footprints of ``views`` in their order from ``start`` on (around to the first),
-    while they fit in ``FOOTPRINT_BYTES``; None for the views past them."""
-    footprints, used = [None] * len(views), 0
+    while they fit in ``FOOTPRINT_BYTES`` (the next one taken to be as large as the largest
+    so far); None for the views past them."""
+    footprints, used, largest = [None] * len(views), 0, 0
     for n in tqdm(range(len(views)), desc="footprints", unit="view", leave=False):
-        if used >= FOOTPRINT_BYTES:
+        if used >= FOOTPRINT_BYTES or used + largest > FOOTPRINT_BYTES:
             break
         index = (start + n) % len(views)
         footprints[index] = _footprint(run, views[index])
         used += footprints[index].nbytes
+        largest = max(largest, footprints[index].nbytes)
     return footprints
 
 
