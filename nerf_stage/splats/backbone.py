@@ -676,7 +676,7 @@ def _start_palette(run: SplatRun, views: list) -> None:
         sent = torch.cat([straight, torch.ones_like(straight[:, :1])], 1)  # (H W, M + 1)
         for first in range(0, len(pixel), PAIRS_AT_ONCE):  # (pairs, M + 1) a part at a time
             part = slice(first, first + PAIRS_AT_ONCE)
-            light.index_add_(0, splat[part], contribution[part, None]
+            light.index_add_(0, splat[part].long(), contribution[part, None]
                              * sent.index_select(0, pixel[part]))
     mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
     weights = light[:, :-1] / light[:, -1:].clamp(min=1e-6)

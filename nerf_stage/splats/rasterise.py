@@ -166,7 +166,7 @@ class _Composite(torch.autograd.Function):
 
 
 class _Blend(NamedTuple):
-    """One band's pairs made again from what ``_Composite`` keeps: (p,) int32 pixel (of the
+    """One band's pairs made again from what ``_Composite`` keeps: (p,) pixel (of the
     window), projection (of the table) and splat indices, light in front, alpha; (p, 6)
     rows of the table; (p,) offsets dx, dy from the splat's centre and its Gaussian
     (``_alpha``)."""
@@ -186,10 +186,11 @@ def _blends(table, index, pixel, ids, light, counts, window) -> Iterator[_Blend]
     """``_Composite``'s pairs, a band (of ``counts``) at a time."""
     first = 0
     for count in counts:
-        part, band = pixel[first:first + count], ids[first:first + count]
+        # int64 indices: index_add_ of rows takes a slow path with int32 ones
+        part, band = pixel[first:first + count].long(), ids[first:first + count].long()
         rows = table.index_select(0, band)
         alpha, dx, dy, gaussian = _alpha(rows, *_position(part, window))
-        yield _Blend(part, band, index.index_select(0, band).int(), light[first:first + count],
+        yield _Blend(part, band, index.index_select(0, band), light[first:first + count],
                      alpha, rows, dx, dy, gaussian)
         first += count
 
@@ -206,7 +207,7 @@ def _blend(table, values, index, pixel, ids, light, counts, window,
                          contribution[:, None] * values.index_select(0, blend.splat))
         opacity.index_add_(0, blend.pixel, contribution)
         if kept is not None:
-            kept.append((blend.pixel, blend.splat, contribution))
+            kept.append((blend.pixel.int(), blend.splat.int(), contribution))
     return drawn, opacity
 
 
