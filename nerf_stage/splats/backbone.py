@@ -539,19 +539,19 @@ def _as_recorded(run: SplatRun, rgb: torch.Tensor, view: _View) -> torch.Tensor:
 def _palette_views(run: SplatRun, stack, views: list) -> list:
     """The palette stage's training views, their weights exposure-free under the current
     colour transforms where the run learns them (``appearance.exposure_free_weights``): as
-    the stage starts and at every checkpoint, where a resumed run computes them too."""
+    the stage starts and at every checkpoint, where a resumed run computes them too; a view
+    at a time, so that the weights' computation holds one view's pixels."""
     if run.appearance is None:
         return views
-    sizes = [view.alpha.numel() for view in views]
-    image = torch.cat([torch.full((size,), view.image, device=view.alpha.device)
-                       for view, size in zip(views, sizes)])
-    weights = exposure_free_weights(run.appearance, stack,
-                                    torch.cat([view.rgb.reshape(-1, 3) for view in views]),
-                                    image, torch.cat([view.alpha.flatten() for view in views]))
-    if weights is None:
-        return views
-    return [replace(view, weights=part.view(view.weights.shape))
-            for view, part in zip(views, weights.split(sizes))]
+    palette_views = []
+    for view in views:
+        image = torch.full((view.alpha.numel(),), view.image, device=view.alpha.device)
+        weights = exposure_free_weights(run.appearance, stack, view.rgb.reshape(-1, 3), image,
+                                        view.alpha.flatten())
+        if weights is None:
+            return views
+        palette_views.append(replace(view, weights=weights.view(view.weights.shape)))
+    return palette_views
 
 
 @dataclass
