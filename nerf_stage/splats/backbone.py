@@ -95,7 +95,7 @@ START_REACH = 0.2
 #: a view drawn afresh at every visit costs a footprint's making each time.
 FOOTPRINT_BYTES = 768 << 20
 WINDOW_VISITS = 8
-PAIRS_AT_ONCE = 1 << 20  # a view's pairs whose (pairs, channels) products are made at once
+PAIRS_AT_ONCE = 1 << 20  # a view's pairs sorted (``_csr``) or multiplied (the start) at once
 
 
 class SplatModel(nn.Module):
