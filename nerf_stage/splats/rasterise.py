@@ -108,7 +108,7 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
         return _Composite.apply(table, values, index, pixel, ids, light, counts, window)
     kept = []
     with torch.no_grad():
-        blended = _blend(table, values, index, pixel, ids, light, counts, window, kept)
+        blended = _draw_bands(table, values, index, pixel, ids, light, counts, window, kept)
     info["pairs"] = tuple(torch.cat(part) for part in zip(*kept))
     return blended
 
@@ -130,7 +130,7 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, table, values, index, pixel, ids, light, counts, window):
         ctx.save_for_backward(table, values, index, pixel, ids, light)
         ctx.counts, ctx.window = counts, window
-        return _blend(table, values, index, pixel, ids, light, counts, window)
+        return _draw_bands(table, values, index, pixel, ids, light, counts, window)
 
     @staticmethod
     def backward(ctx, grad_drawn, grad_opacity):
@@ -154,7 +154,7 @@ class _Composite(torch.autograd.Function):
             behind = (running.index_select(0, last) - running).to(q.dtype)
             grad_alpha = blend.light * q - behind / (1 - blend.alpha)
             # through the clamp at MAX_ALPHA, the peak opacity and the Gaussian's exponent
-            u, v, a, b, c, peak = blend.rows.unbind(1)
+            _, _, a, b, c, peak = blend.rows.unbind(1)
             dx, dy = blend.dx, blend.dy
             grad_peak = torch.where(blend.alpha < MAX_ALPHA, grad_alpha * blend.gaussian, 0)
             grad_power = grad_peak * peak
@@ -195,7 +195,7 @@ def _blends(table, index, pixel, ids, light, counts, window) -> Iterator[_Blend]
         first += count
 
 
-def _blend(table, values, index, pixel, ids, light, counts, window,
+def _draw_bands(table, values, index, pixel, ids, light, counts, window,
            kept: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """``_Composite``'s (pixels, M) values and (pixels,) opacity, a band at a time; each
     band's (p,) pixel, splat and contribution appended to ``kept`` when given."""
