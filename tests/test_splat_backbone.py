@@ -665,6 +665,36 @@ def test_a_capture_with_sparse_points_starts_its_splats_there():
     assert len(set(nearest.tolist())) == 30 and start["colours_rest"].shape == (30, 8, 3)
 
 
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_splats_start_where_the_views_see_no_point_too(unbounded, monkeypatch):
+    """Points seen in the left half of a view leave its right half empty: splats start
+    there too, on rays through its pixels, in their colour, no nearer than the points, as
+    many for that half as the points are for the other."""
+    from nerf_stage.data.points import Points
+    from nerf_stage.render.scene_box import SceneBox
+    from nerf_stage.splats.backbone import initial_splats
+
+    monkeypatch.setattr(backbone, "COVER_CELLS", CAMERA.width // 2)  # cells of 2 x 2 pixels
+    box = SceneBox(np.zeros(3), np.full(3, 2.0), unbounded=unbounded)
+    alpha = np.ones((2, CAMERA.height, CAMERA.width), np.float32)
+    alpha[1] = 0  # the second view is transparent: the first alone counts
+    views = _views_of(box, alpha)
+    pose, depth = views.poses[0], 0.8 * box.scale
+    y, x = np.mgrid[:CAMERA.height, :CAMERA.width // 2] + 0.5  # the left half's pixel centres
+    local = np.stack([(x - CAMERA.cx) / CAMERA.fx, -(y - CAMERA.cy) / CAMERA.fy,
+                      -np.ones_like(x)], -1).reshape(-1, 3) * depth
+    points = Points(local @ pose[:3, :3].T + pose[:3, 3], np.full((len(local), 3), 0.5))
+    start = initial_splats(box, 1000, 0, torch.Generator().manual_seed(0), views, points)
+    world = start["means"].numpy()[len(points):] * box.scale + box.centre
+    assert len(world) == len(points)  # the empty half is as large as the other
+    seen = (world - pose[:3, 3]) @ pose[:3, :3]
+    px = CAMERA.cx + CAMERA.fx * seen[:, 0] / -seen[:, 2]
+    distance = np.linalg.norm(world - pose[:3, 3], axis=1)
+    assert (distance >= depth * (1 - 1e-5)).all() and (px >= CAMERA.width // 2).all()
+    colours = SH_C0 * start["colours"].numpy()[len(points):] + 0.5
+    assert np.allclose(colours, (0.2, 0.4, 0.9), atol=1e-5)
+
+
 def test_sparse_points_near_a_camera_start_no_wider_than_the_reach_allows():
     """Points far apart start as wide as their neighbours are far, except where that would
     draw them past ``--splats-reach`` in the nearest view: there at most ``widest`` times

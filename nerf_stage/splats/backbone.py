@@ -81,6 +81,12 @@ PIXELS_PER_INITIAL = 4
 MIN_POINTS = 4  # a capture with fewer sparse points starts at random
 HULL_CELLS = 64  # along each side of the box: the visual hull that bounded scenes start in
 HULL_TRIES = 32  # places along a starting splat's ray tried for one in the hull
+#: A capture's sparse points leave parts of its views empty (sky, ground, a background
+#: too plain or too far to match): splats start there too, where a view's cell, one of
+#: this many along its longer side, holds no point (``uncovered``).
+COVER_CELLS = 16
+#: ... no nearer to the camera than this quantile of the depths of the points it sees.
+COVER_NEAR = 0.1
 #: Far splats start out to this many bends of a ray's marching parameter (``contraction``):
 #: ten bends from the camera.
 FAR_SHELL = 1.9
@@ -261,18 +267,26 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
     """Splats to start from, ``INITIAL_OPACITY`` opaque, as wide as the mean distance to
     their three nearest neighbours, with colours of ``degree``: at most ``n`` of the
     capture's ``points`` in their colours (3D Gaussian splatting's start), else at most
-    ``n`` where the training ``views`` look (``seen_splats``). Starting splats may lie far
-    apart (sparse points, far splats of an unbounded scene), so none is wider than
-    ``widest`` times its distance to the nearest of the (N, 3) normalised camera centres
-    ``eyes``."""
-    if points is not None:
+    ``n`` where the training ``views`` look (``seen_splats``). With both, splats start
+    where the ``views`` see no point, too (``uncovered``), as many for those pixels as
+    the points are for the rest, at most ``n``. Starting splats may lie far apart (sparse
+    points, far splats of an unbounded scene), so none is wider than ``widest`` times its
+    distance to the nearest of the (N, 3) normalised camera centres ``eyes``."""
+    if points is None:
+        means, rgb = seen_splats(box, n, generator, views)
+    else:
         pick = torch.randperm(len(points), generator=generator)[:n].numpy()
         means = torch.as_tensor((points.positions[pick] - box.centre) / box.scale,
                                 dtype=torch.float32)
-        colours = (torch.as_tensor(points.colours[pick]) - 0.5) / SH_C0
-    else:
-        means, rgb = seen_splats(box, n, generator, views)
-        colours = (rgb - 0.5) / SH_C0
+        rgb = torch.as_tensor(points.colours[pick], dtype=torch.float32)
+        if views is not None:
+            empty = uncovered(points, views)
+            share = empty.alpha.sum() / max(1, (views.alpha >= 0.5).sum())
+            extra = min(n, round(len(pick) * share / max(1 - share, 1 / len(pick))))
+            if extra:
+                far, far_rgb = seen_splats(box, extra, generator, empty)
+                means, rgb = torch.cat([means, far]), torch.cat([rgb, far_rgb])
+    colours = (rgb - 0.5) / SH_C0
     distance = cKDTree(means.numpy()).query(means.numpy(), k=4)[0][:, 1:].mean(1)
     if eyes is not None:
         distance = np.minimum(distance, widest * cKDTree(eyes).query(means.numpy())[0])
@@ -287,14 +301,37 @@ def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generato
 @dataclass
 class SeenViews:
     """The training views a splat run starts from: N world ``poses``, their ``cameras``,
-    (N, H, W, 3) ``images`` and (N, H, W) ``alpha``, and the box's visual ``hull`` (X, Y, Z)
-    where a bounded scene's images are partly transparent (None elsewhere)."""
+    (N, H, W, 3) ``images`` and (N, H, W) ``alpha``, the box's visual ``hull`` (X, Y, Z)
+    where a bounded scene's images are partly transparent (None elsewhere), and the (N,)
+    world distance from each camera within which no splat starts (``near``; None: 0)."""
 
     poses: np.ndarray
     cameras: list[Intrinsics]
     images: np.ndarray
     alpha: np.ndarray
     hull: np.ndarray | None = None
+    near: np.ndarray | None = None
+
+
+def uncovered(points: Points, views: SeenViews) -> SeenViews:
+    """The opaque pixels (alpha at least a half) of ``views`` whose cell (``COVER_CELLS``
+    along the view's longer side) no point in front of the camera falls in, as ``alpha``
+    (N, H, W) bool, with ``near``: the ``COVER_NEAR`` quantile of the depths of the points
+    each view sees (0 where it sees none)."""
+    empty, near = views.alpha >= 0.5, np.zeros(len(views.poses))
+    for i, (pose, camera) in enumerate(zip(views.poses, views.cameras)):
+        local = (points.positions - pose[:3, 3]) @ pose[:3, :3]
+        depth = -local[:, 2]
+        x = camera.cx + camera.fx * local[:, 0] / np.maximum(depth, 1e-9)
+        y = camera.cy - camera.fy * local[:, 1] / np.maximum(depth, 1e-9)
+        seen = (depth > 0) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+        size = max(camera.width, camera.height) / COVER_CELLS
+        covered = np.zeros((COVER_CELLS + 1, COVER_CELLS + 1), bool)
+        covered[(y[seen] / size).astype(int), (x[seen] / size).astype(int)] = True
+        empty[i] &= ~covered[np.ix_(((np.arange(camera.height) + 0.5) / size).astype(int),
+                                    ((np.arange(camera.width) + 0.5) / size).astype(int))]
+        near[i] = np.quantile(depth[seen], COVER_NEAR) if seen.any() else 0.0
+    return replace(views, alpha=empty, near=near)
 
 
 def seen_splats(box: SceneBox, n: int, generator: torch.Generator,
@@ -304,8 +341,8 @@ def seen_splats(box: SceneBox, n: int, generator: torch.Generator,
     random view, in that pixel's colour, at a uniform random place of the ray's marching
     parameter (``contraction``: linear in distance through the box, in disparity beyond it
     out to ``FAR_SHELL``, so that about half of them are far in an unbounded scene; within
-    the ``hull`` where there is one, the first of ``HULL_TRIES`` places in it). Rays that
-    meet no box (or hull) start no splat, unless none does."""
+    the ``hull`` where there is one, the first of ``HULL_TRIES`` places in it), beyond the
+    view's ``near``. Rays that meet no box (or hull) start no splat, unless none does."""
     opaque = np.flatnonzero(views.alpha.reshape(-1) >= 0.5)
     if not len(opaque):
         opaque = np.arange(views.alpha.size)
@@ -321,14 +358,19 @@ def seen_splats(box: SceneBox, n: int, generator: torch.Generator,
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     origins = (views.poses[view, :3, 3] - box.centre) / box.scale
     origins, directions = (torch.as_tensor(a, dtype=torch.float32) for a in (origins, directions))
+    start = torch.as_tensor(0.0 if views.near is None else views.near[view] / box.scale,
+                            dtype=torch.float32)
     if box.unbounded:
         _, exits = box_intersection(origins, directions, torch.ones(3))
         bend = exits.clamp(min=1.0)
-        u = torch.rand(n, generator=generator) * FAR_SHELL * bend
+        first = torch.where(start <= bend, start, 2 * bend - bend * bend / start.clamp(min=1e-9))
+        first = torch.minimum(first, FAR_SHELL * bend)  # where the parameter u starts
+        u = first + torch.rand(n, generator=generator) * (FAR_SHELL * bend - first)
         t = torch.where(u <= bend, u, bend * bend / (2 * bend - u))
         return origins + t[:, None] * directions, colours
     extent = torch.as_tensor(box.extent, dtype=torch.float32)
     near, far = box_intersection(origins, directions, extent)
+    near = torch.maximum(near, start)
     tries = 1 if views.hull is None else HULL_TRIES
     t = near[:, None] + torch.rand(n, tries, generator=generator) * (far - near)[:, None]
     hit = (far > near)[:, None].expand(n, tries)
@@ -372,13 +414,11 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         initial = (settings.initial if points is not None
                    else max(4, min(settings.initial, pixels // PIXELS_PER_INITIAL)))
         poses, cameras = dataset.poses[train_ids], dataset.cameras(train_ids)
-        seen = None
-        if points is None:  # the views' images are needed only to start without points
-            alpha = dataset.alpha[train_ids]
-            hull = (visual_hull(box, np.full(3, HULL_CELLS), poses, cameras, alpha)
-                    if not box.unbounded and (alpha < 1).any() else None)
-            seen = SeenViews(poses, cameras, dataset.images[train_ids], alpha,
-                             hull if hull is not None and hull.any() else None)
+        alpha = dataset.alpha[train_ids]
+        hull = (visual_hull(box, np.full(3, HULL_CELLS), poses, cameras, alpha)
+                if not box.unbounded and (alpha < 1).any() else None)
+        seen = SeenViews(poses, cameras, dataset.images[train_ids], alpha,
+                         hull if hull is not None and hull.any() else None)
         eyes = (poses[:, :3, 3] - box.centre) / box.scale
         focal = max(max(c.fx, c.fy) for c in cameras)
         model = SplatModel(initial_splats(box, initial, settings.sh_degree, generator, seen,
