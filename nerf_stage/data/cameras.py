@@ -117,6 +117,18 @@ def focal_from_fov(width: int, fov_x_degrees: float) -> float:
     return focal_length(width, math.radians(fov_x_degrees))
 
 
+def project(points: np.ndarray, pose: np.ndarray,
+            intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(P,) pixel coordinates x, y and depth (along the view's axis) of the (P, 3) world
+    ``points`` in the view of camera-to-world ``pose``; x and y are meaningless where the
+    depth is not positive (behind the camera)."""
+    local = (points - pose[:3, 3]) @ pose[:3, :3]
+    depth = -local[:, 2]
+    safe = np.where(depth > 0, depth, 1.0)
+    return (intrinsics.cx + intrinsics.fx * local[:, 0] / safe,
+            intrinsics.cy - intrinsics.fy * local[:, 1] / safe, depth)
+
+
 def camera_rays(pose: np.ndarray, intrinsics: Intrinsics,
                 supersampling: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """World rays of one camera (OpenGL axes: looks along -z) through the centres of an

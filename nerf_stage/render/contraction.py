@@ -50,6 +50,11 @@ def ray_interval(exits: torch.Tensor):
     return torch.zeros_like(bend), bend * (2 - 1 / FAR), bend
 
 
+def parameter(t: torch.Tensor, bend: torch.Tensor) -> torch.Tensor:
+    """The u of distance ``t`` along rays of ``bend`` (the inverse of ``ray_points``' t)."""
+    return torch.where(t <= bend, t, 2 * bend - bend * bend / t.clamp(min=1e-12))
+
+
 def ray_points(origins: torch.Tensor, directions: torch.Tensor, u: torch.Tensor,
                bend: torch.Tensor | None) -> torch.Tensor:
     """Positions (..., 3) of the samples at ``u`` (...) on rays with origins and directions

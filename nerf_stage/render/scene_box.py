@@ -18,7 +18,7 @@ from scipy.ndimage import maximum_filter
 
 from palette_core.errors import InputError
 
-from ..data.cameras import Intrinsics, camera_rays
+from ..data.cameras import Intrinsics, camera_rays, project
 from . import contraction
 
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
@@ -147,15 +147,12 @@ def visual_hull(box: SceneBox, resolution: np.ndarray, poses: np.ndarray,
     keep = np.ones(len(points), bool)
     radius = 0.5 * float(np.linalg.norm(2 * box.half / resolution))  # of a cell's bounding ball
     for pose, camera, mask in zip(poses, intrinsics, alpha):
-        local = (points - pose[:3, 3]) @ pose[:3, :3]
-        depth = -local[:, 2]
+        u, v, depth = project(points, pose, camera)
         ahead = depth > radius
         safe = np.where(ahead, depth, 1.0)
-        u = camera.cx + camera.fx * local[:, 0] / safe
-        v = camera.cy - camera.fy * local[:, 1] / safe
         inside = ahead & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-        ui = np.clip(u.astype(np.int64), 0, camera.width - 1)
-        vi = np.clip(v.astype(np.int64), 0, camera.height - 1)
+        ui = np.clip(u, 0, camera.width - 1).astype(np.int64)
+        vi = np.clip(v, 0, camera.height - 1).astype(np.int64)
         footprint = np.ceil(camera.fx * radius / safe).astype(np.int64)  # pixels
         carved = np.zeros(len(points), bool)
         for pixels in np.unique(footprint[inside]):

@@ -41,10 +41,11 @@ from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError, first_line
 
 from ..backbones import SplatConfig
-from ..data.cameras import Intrinsics
+from ..data.cameras import Intrinsics, project
 from ..data.dataset import Dataset
 from ..data.points import Points
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB, inverse_tone_map, tone_map
+from ..render.contraction import parameter
 from ..render.march import box_intersection
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, visual_hull
@@ -320,10 +321,7 @@ def uncovered(points: Points, views: SeenViews) -> SeenViews:
     each view sees (0 where it sees none)."""
     empty, near = views.alpha >= 0.5, np.zeros(len(views.poses))
     for i, (pose, camera) in enumerate(zip(views.poses, views.cameras)):
-        local = (points.positions - pose[:3, 3]) @ pose[:3, :3]
-        depth = -local[:, 2]
-        x = camera.cx + camera.fx * local[:, 0] / np.maximum(depth, 1e-9)
-        y = camera.cy - camera.fy * local[:, 1] / np.maximum(depth, 1e-9)
+        x, y, depth = project(points.positions, pose, camera)
         seen = (depth > 0) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
         size = max(camera.width, camera.height) / COVER_CELLS
         covered = np.zeros((COVER_CELLS + 1, COVER_CELLS + 1), bool)
@@ -363,8 +361,7 @@ def seen_splats(box: SceneBox, n: int, generator: torch.Generator,
     if box.unbounded:
         _, exits = box_intersection(origins, directions, torch.ones(3))
         bend = exits.clamp(min=1.0)
-        first = torch.where(start <= bend, start, 2 * bend - bend * bend / start.clamp(min=1e-9))
-        first = torch.minimum(first, FAR_SHELL * bend)  # where the parameter u starts
+        first = torch.minimum(parameter(start, bend), FAR_SHELL * bend)  # where u starts
         u = first + torch.rand(n, generator=generator) * (FAR_SHELL * bend - first)
         t = torch.where(u <= bend, u, bend * bend / (2 * bend - u))
         return origins + t[:, None] * directions, colours

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..data.cameras import Intrinsics
-from ..render.contraction import ray_interval
+from ..data.cameras import Intrinsics, project
+from ..render.contraction import parameter, ray_interval
 from ..render.march import box_intersection
 from ..render.scene_box import SceneBox
 
@@ -44,10 +44,7 @@ def point_targets(points: np.ndarray, poses: np.ndarray, cameras: list[Intrinsic
     pixels, distances, origins, directions = [], [], [], []
     for view, (pose, camera) in enumerate(zip(poses, cameras)):
         offset = points - pose[:3, 3]
-        local = offset @ pose[:3, :3]  # camera axes: x right, y up, looking along -z
-        depth = -local[:, 2]
-        x = camera.fx * local[:, 0] / np.where(depth > 0, depth, 1) + camera.cx
-        y = -camera.fy * local[:, 1] / np.where(depth > 0, depth, 1) + camera.cy
+        x, y, depth = project(points, pose, camera)
         inside = (depth > 0) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
         column, row = x[inside].astype(np.int64), y[inside].astype(np.int64)
         distance = np.linalg.norm(offset[inside], axis=1)
@@ -65,7 +62,5 @@ def point_targets(points: np.ndarray, poses: np.ndarray, cameras: list[Intrinsic
         _, exits = box_intersection(torch.as_tensor(np.concatenate(origins)),
                                     torch.as_tensor(np.concatenate(directions)),
                                     torch.ones(3, dtype=torch.float64))
-        bend = ray_interval(exits)[2].numpy()
-        distances = np.where(distances <= bend, distances,
-                             2 * bend - bend ** 2 / np.maximum(distances, 1e-12))
+        distances = parameter(torch.as_tensor(distances), ray_interval(exits)[2]).numpy()
     return pixels, distances.astype(np.float32)
