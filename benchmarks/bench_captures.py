@@ -70,12 +70,14 @@ CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
 PROBE_ITERS = 40  # iterations of the probe that times our NeRF
 SPEED_UP = 2.0  # how much faster iterations run than the probe's (the occupancy grid prunes)
-#: Iterations planned beyond the expected ones, by whether the backbone is a field: a
-#: field's stages end by the clock with their rates decayed by it, so a plan far longer
-#: than the budget costs nothing and leaves the clock to end both stages (iterations speed
-#: up from capture to capture by up to ten times once space is pruned); splats grow on a
-#: schedule of iterations, which a longer plan would not finish, and their steps slow down
-#: as they grow rather than speed up: their plan is the probe's rate alone.
+#: Iterations planned beyond the expected ones for the first stage, by whether the backbone
+#: is a field: a field's stages end by the clock with their rates decayed by it, so a plan
+#: far longer than the budget costs nothing and leaves the clock to end the stage
+#: (iterations speed up from capture to capture by up to ten times once space is pruned);
+#: splats grow on a schedule of iterations, which a longer plan would not finish, and their
+#: steps slow down as they grow rather than speed up: their plan is the probe's rate alone.
+#: The palette stage, where splats no longer grow, is planned as long as a field's: the
+#: clock ends it at the budget (``--pretrain-minutes`` keeps pretraining's share).
 HEADROOM = {True: 10.0, False: 1.0 / SPEED_UP}
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
@@ -215,7 +217,8 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
     if not (run_dir / "checkpoint.pt").is_file():
         run_dir.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
-            _train(data_dir, Path(probe) / "run", strategy, backbone, PROBE_ITERS, 0.0,
+            _train(data_dir, Path(probe) / "run", strategy, backbone,
+                   PROBE_ITERS * PRETRAIN_SHARE, PROBE_ITERS * (1 - PRETRAIN_SHARE), 0.0,
                    options=options)
             probed = load_run(Path(probe) / "run").record.log
         # the first stage's second half: past the warm-up, and before the palette stage's
@@ -224,9 +227,12 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
         probed = probed[len(probed) // 2:]
         rate = (len(probed) - 1) / (probed[-1]["seconds"] - probed[0]["seconds"])
         expected = SPEED_UP * seconds * rate
+        # a splat run's rgb strategy trains its first stage alone
+        first = HEADROOM[BACKBONES[backbone].is_field] * (
+            1 if strategy == "rgb" else PRETRAIN_SHARE)
         with Snapshots(run_dir / "checkpoint.pt", snapshots):
-            _train(data_dir, run_dir, strategy, backbone,
-                   expected * HEADROOM[BACKBONES[backbone].is_field], seconds / 60,
+            _train(data_dir, run_dir, strategy, backbone, expected * first,
+                   expected * HEADROOM[True] * (1 - PRETRAIN_SHARE), seconds / 60,
                    every=max(1, round(expected / max(1, curve_points))), log=log,
                    options=options)
     curve = checkpoint_curve(snapshots, data, test) if curve_points else []
@@ -241,18 +247,18 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
             "peak_gb": float(memory.group(1)) if memory else None}
 
 
-def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, iterations: float,
-           minutes: float, every: int = 500, log: Path | None = None,
+def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, pretrain: float,
+           finetune: float, minutes: float, every: int = 500, log: Path | None = None,
            options: tuple[str, ...] = ()) -> str:
-    """``nerf-stage train`` for ``iterations`` in all, split as the defaults split them,
-    within ``minutes`` (0: no limit), with a checkpoint ``every`` so many iterations and
-    more ``options``; its output (``_run``)."""
-    total = max(2, round(iterations))
-    pretrain = max(1, round(total * PRETRAIN_SHARE))
+    """``nerf-stage train`` for ``pretrain`` and ``finetune`` iterations within ``minutes``
+    (0: no limit), pretraining within its share of them in the defaults' ratio, with a
+    checkpoint ``every`` so many iterations and more ``options``; its output (``_run``)."""
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--backbone", backbone,
-                 "--pretrain-iters", str(pretrain), "--finetune-iters", str(total - pretrain),
-                 "--minutes", str(minutes), "--checkpoint-every", str(every), *options],
+                 "--pretrain-iters", str(max(1, round(pretrain))),
+                 "--finetune-iters", str(max(1, round(finetune))),
+                 "--minutes", str(minutes), "--pretrain-minutes", str(minutes * PRETRAIN_SHARE),
+                 "--checkpoint-every", str(every), *options],
                 f"train {strategy}", log)
 
 

@@ -283,6 +283,24 @@ def test_under_a_wall_clock_limit_a_stage_progresses_with_its_time_too():
     assert progress(replace(config, minutes=0.0), 12, log) == pytest.approx(0.2)
 
 
+def test_pretraining_may_have_a_time_limit_of_its_own():
+    """Pretraining limited to 15 s of a minute ends then, whatever P / (P + F) is, and
+    fine-tuning planned far longer than it can run has the rest and is ended by the clock."""
+    config = tiny_config(pretrain_iters=10, finetune_iters=1000, minutes=1.0,
+                         pretrain_minutes=0.25)
+    step = trainer_module.next_iteration
+    assert step(config, 3, 14.9) == 3 and step(config, 3, 15.0) == 10  # pretraining's end
+    assert step(config, 12, 59.9) == 12 and step(config, 12, 60.0) == 1010
+    log = [{"iteration": i, "seconds": 5.0 * i} for i in range(1, 4)]  # ended by the clock
+    assert trainer_module.stage_progress(config, 2, log[:1]) == pytest.approx(5 / 15)
+    log.append({"iteration": 11, "seconds": 37.5})
+    assert trainer_module.stage_progress(config, 11, log) == pytest.approx(22.5 / 45)
+    untimed = replace(config, minutes=0.0)  # pretraining's limit alone
+    assert step(untimed, 3, 15.0) == 10 and step(untimed, 12, 1e9) == 12
+    with pytest.raises(InputError, match="pretrain_minutes"):
+        TrainConfig(minutes=1.0, pretrain_minutes=2.0)
+
+
 def test_a_backbones_table_entry_gives_its_config_section_and_flags():
     """``TrainConfig`` and ``nerf-stage train`` follow ``BACKBONES``: a section of the entry's
     settings per backbone, its flags, and in ``config.json`` the chosen backbone's only."""

@@ -133,15 +133,20 @@ class TrainConfig:
     """Iterations between checkpoints."""
     minutes: float = 0.0
     """Wall-clock limit of training (0: none). Each stage stops at its share of it (two-stage
-    pretraining: P / (P + F) of it) or after its iterations, whichever comes first, and its
-    learning rates decay with its iterations or its time, whichever is further
-    (``trainer.stage_progress``). For comparing NeRFs at one budget."""
+    pretraining: ``pretrain_minutes``, by default P / (P + F) of it) or after its iterations,
+    whichever comes first, and its learning rates decay with its iterations or its time,
+    whichever is further (``trainer.stage_progress``). For comparing NeRFs at one budget."""
+    pretrain_minutes: float = 0.0
+    """Wall-clock limit of two-stage pretraining (0: P / (P + F) of ``minutes``), at most
+    ``minutes``: with it, fine-tuning planned longer than the time left is ended by the
+    clock whatever P / (P + F) is (docs/nerf.md, "Under a wall-clock limit")."""
     def __post_init__(self):
         self.backbone = member(Backbone, self.backbone, "backbone")
         self.strategy = member(Strategy, self.strategy, "strategy")
         self.space = member(Space, self.space, "space")
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
-                      "distortion_weight", "depth_weight", "near_gradient", "minutes")
+                      "distortion_weight", "depth_weight", "near_gradient", "minutes",
+                      "pretrain_minutes")
         positive(self, "lr_decay")
         if not isinstance(self.appearance, bool):
             raise InputError(f"appearance must be true or false, got {self.appearance!r}")
@@ -152,6 +157,9 @@ class TrainConfig:
         integers(self, 1, MAX_VOXELS, "occupancy_voxels")
         integers(self, 1, MAX_ITERS, "checkpoint_every")
         integers(self, 0, (1 << 63) - 1, "seed")
+        if self.minutes and self.pretrain_minutes > self.minutes:
+            raise InputError(f"pretrain_minutes ({self.pretrain_minutes}) must be at most "
+                             f"minutes ({self.minutes})")
         if self.pretrain_iters + self.finetune_iters == 0:
             raise InputError("pretrain_iters + finetune_iters must be > 0")
         if self.strategy == Strategy.TWO_STAGE and self.finetune_iters == 0:

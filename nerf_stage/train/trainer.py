@@ -205,22 +205,22 @@ def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: st
 def stage_progress(config: TrainConfig, it: int, log: list, last: int | None = None) -> float:
     """How far iteration ``it`` is through its stage, in [0, 1]: the share of the stage's
     iterations done (two-stage: pretraining, then fine-tuning up to ``last``, as
-    ``next_iteration`` has them) or, under ``config.minutes``, the share of the stage's time
+    ``next_iteration`` has them) or, under a wall-clock limit, the share of the stage's time
     spent by the run's ``log`` when that is more, so that a stage that the clock ends has
     its learning rates decayed as far as one that its iterations end."""
     last = config.total_iters if last is None else last
+    pretraining = _pretraining(config, it)
     two_stage = config.strategy == Strategy.TWO_STAGE
-    pretraining = two_stage and it < config.pretrain_iters
     start = config.pretrain_iters if two_stage and not pretraining else 0
     end = config.pretrain_iters if pretraining else last
     done = min((it - start) / max(1, end - start), 1.0)
-    if not config.minutes or not log:
+    until = stage_deadline(config, pretraining, last)
+    if until is None or not log:
         return done
     begin = 0.0  # fine-tuning begins when pretraining's last logged iteration ended
     stage = bisect_right(log, start, key=lambda entry: entry["iteration"]) if start else 0
     if stage:
         begin = log[stage - 1]["seconds"]
-    until = 60 * config.minutes * end / last
     return min(max(done, (log[-1]["seconds"] - begin) / max(until - begin, 1e-9)), 1.0)
 
 
@@ -228,15 +228,29 @@ def next_iteration(config: TrainConfig, it: int, seconds: float,
                    last: int | None = None) -> int:
     """The iteration after ``it`` iterations in ``seconds``: ``it``, or the next stage's
     first (two-stage fine-tuning; ``last``, by default ``config.total_iters``, for one stage
-    or the last) once the stage has used its share of ``config.minutes``."""
+    or the last) once the stage has reached its ``stage_deadline``."""
     last = config.total_iters if last is None else last
-    if not config.minutes:
-        return it
-    pretraining = config.strategy == Strategy.TWO_STAGE and it < config.pretrain_iters
-    share = config.pretrain_iters / last if pretraining else 1.0
-    if seconds < 60 * config.minutes * share:
+    pretraining = _pretraining(config, it)
+    until = stage_deadline(config, pretraining, last)
+    if until is None or seconds < until:
         return it
     return config.pretrain_iters if pretraining else last
+
+
+def stage_deadline(config: TrainConfig, pretraining: bool, last: int | None = None
+                   ) -> float | None:
+    """Seconds from the run's start at which pretraining (or the stage after it, or the
+    only one) ends under ``config.minutes`` and ``config.pretrain_minutes``; None: never."""
+    if pretraining and config.pretrain_minutes:
+        return 60 * config.pretrain_minutes
+    if not config.minutes:
+        return None
+    last = config.total_iters if last is None else last
+    return 60 * config.minutes * (config.pretrain_iters / last if pretraining else 1.0)
+
+
+def _pretraining(config: TrainConfig, it: int) -> bool:
+    return config.strategy == Strategy.TWO_STAGE and it < config.pretrain_iters
 
 
 def training_targets(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: Path,
