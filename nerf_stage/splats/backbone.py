@@ -427,6 +427,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     if config.appearance and run.appearance is None:
         run.appearance = Appearance(len(train_ids)).to(device)
     views = _training_views(run, dataset, train_ids, weights, device)
+    del weights  # the views hold them, until the palette stage's replace them
     rundir.mkdir(parents=True, exist_ok=True)
     config.save(rundir / CONFIG)
     extent = 1.1 * float(max(torch.linalg.norm(v.pose[:3, 3]) for v in views))
@@ -449,12 +450,12 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     footprints, start, visits = None, 0, 0
     while it < last:
         if it >= config.pretrain_iters and run.kind == RGB:
-            views = _palette_views(run, stack, views)
+            _exposure_free(run, stack, views)
             _start_palette(run, views)
             footprints = _footprints(run, views)
             optimiser = _optimiser(run, extent)
         elif run.kind != RGB and it % config.checkpoint_every == 0:
-            views = _palette_views(run, stack, views)
+            _exposure_free(run, stack, views)
         if run.kind != RGB and footprints is None:  # resumed in the palette stage
             footprints = _footprints(run, views)
         held = [i for i, footprint in enumerate(footprints or ()) if footprint]
@@ -573,22 +574,21 @@ def _as_recorded(run: SplatRun, rgb: torch.Tensor, view: _View) -> torch.Tensor:
     return run.appearance(rgb.reshape(-1, 3), image).view(rgb.shape)
 
 
-def _palette_views(run: SplatRun, stack, views: list) -> list:
-    """The palette stage's training views, their weights exposure-free under the current
-    colour transforms where the run learns them (``appearance.exposure_free_weights``): as
-    the stage starts and at every checkpoint, where a resumed run computes them too; a view
-    at a time, so that the weights' computation holds one view's pixels."""
+def _exposure_free(run: SplatRun, stack, views: list) -> None:
+    """Give the palette stage's training ``views`` (in place) their weights exposure-free
+    under the current colour transforms where the run learns them
+    (``appearance.exposure_free_weights``): as the stage starts and at every checkpoint,
+    where a resumed run computes them too; a view at a time, so that one view's pixels are
+    computed and one view's weights are held twice at once."""
     if run.appearance is None:
-        return views
-    palette_views = []
-    for view in views:
+        return
+    for n, view in enumerate(views):
         image = torch.full((view.alpha.numel(),), view.image, device=view.alpha.device)
         weights = exposure_free_weights(run.appearance, stack, view.rgb.reshape(-1, 3), image,
                                         view.alpha.flatten())
         if weights is None:
-            return views
-        palette_views.append(replace(view, weights=weights.view(view.weights.shape)))
-    return palette_views
+            return
+        views[n] = replace(view, weights=weights.view(view.weights.shape))
 
 
 @dataclass
