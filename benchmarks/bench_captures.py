@@ -7,7 +7,9 @@ The captures are folders in ROOT, one per name, that you fill once with the sear
 ``fetch`` (no program of ours downloads anything; none of them is committed):
 
 - ``fox``: NVlabs/instant-ngp ``data/nerf/fox`` (phone photos of a fox figure, with
-  ``transforms.json``: poses and ``k1 k2 p1 p2``);
+  ``transforms.json``: poses and ``k1 k2 p1 p2``; it names 67 frames, of which the
+  repository holds 50 photos: keep the frames whose photo it holds), its points
+  triangulated by ``nerf-stage poses ROOT/fox -o ROOT2/fox`` for the splats;
 - ``lund``: mapillary/OpenSfM ``data/lund/images`` (29 photos walking down a street);
 - ``sceaux``: openMVG/ImageDataset_SceauxCastle ``images`` (11 photos of a castle front);
 - ``monstree``: alicevision/dataset_monstree ``full`` (photos around a tree; the mirror
