@@ -22,9 +22,9 @@ undistorted, as PNGs in nerfstudio's layout with every eighth photo held out in 
 splits. ``palette-decompose -k 6`` makes the weight stack of its photos.
 
 Budget: each method trains for ``--minutes``. Ours: a short probe run measures the
-seconds an iteration takes, and the pretrain and fine-tune iterations (in the defaults'
-ratio) are set to fill the budget, and ``--minutes`` ends each stage at its share
-(``ours``).
+seconds an iteration takes, the pretrain and fine-tune iterations are set to fill the
+budget, and ``--minutes`` with ``--pretrain-minutes`` ends each stage at its share, in
+the defaults' ratio (``ours``).
 nerfacto (PyTorch implementation, ``--machine.device-type cpu`` without CUDA) runs in its
 own virtual environment, ``--nerfacto-venv``, which this script creates when missing
 (PyPI's ``nerfstudio``; never a dependency of ours), and is stopped by the clock: its
