@@ -51,8 +51,14 @@ def ray_interval(exits: torch.Tensor):
 
 
 def parameter(t: torch.Tensor, bend: torch.Tensor) -> torch.Tensor:
-    """The u of distance ``t`` along rays of ``bend`` (the inverse of ``ray_points``' t)."""
+    """The u of distance ``t`` along rays of ``bend`` (the inverse of ``distance``)."""
     return torch.where(t <= bend, t, 2 * bend - bend * bend / t.clamp(min=1e-12))
+
+
+def distance(u: torch.Tensor, bend: torch.Tensor) -> torch.Tensor:
+    """The distance t along rays of ``bend`` at parameter ``u`` (the inverse of
+    ``parameter``)."""
+    return torch.where(u <= bend, u, bend * bend / (2 * bend - u).clamp(min=1e-12))
 
 
 def ray_points(origins: torch.Tensor, directions: torch.Tensor, u: torch.Tensor,
@@ -62,5 +68,4 @@ def ray_points(origins: torch.Tensor, directions: torch.Tensor, u: torch.Tensor,
     ``bend`` is None (a bounded box), o + u d."""
     if bend is None:
         return origins + u[..., None] * directions
-    t = torch.where(u <= bend, u, bend * bend / (2 * bend - u).clamp(min=1e-12))
-    return contract(origins + t[..., None] * directions)
+    return contract(origins + distance(u, bend)[..., None] * directions)

@@ -45,7 +45,7 @@ from ..data.cameras import Intrinsics, project
 from ..data.dataset import Dataset
 from ..data.points import Points
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB, inverse_tone_map, tone_map
-from ..render.contraction import parameter
+from ..render.contraction import distance, parameter
 from ..render.march import box_intersection
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, visual_hull
@@ -363,8 +363,7 @@ def seen_splats(box: SceneBox, n: int, generator: torch.Generator,
         bend = exits.clamp(min=1.0)
         first = torch.minimum(parameter(start, bend), FAR_SHELL * bend)  # where u starts
         u = first + torch.rand(n, generator=generator) * (FAR_SHELL * bend - first)
-        t = torch.where(u <= bend, u, bend * bend / (2 * bend - u))
-        return origins + t[:, None] * directions, colours
+        return origins + distance(u, bend)[:, None] * directions, colours
     extent = torch.as_tensor(box.extent, dtype=torch.float32)
     near, far = box_intersection(origins, directions, extent)
     near = torch.maximum(near, start)
