@@ -200,11 +200,13 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
 
 
 def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: float,
-         curve_points: int = 10, options: tuple[str, ...] = ()) -> dict:
+         curve_points: int = 10, options: tuple[str, ...] = (),
+         share: float = PRETRAIN_SHARE) -> dict:
     """Train our NeRF (``backbone``) on ``data_dir`` within ``seconds``; its renders of the
     held-out views, iterations, training seconds, peak memory and held-out PSNR against
     training time (``curve``: seconds and dB of about ``curve_points`` checkpoints; 0: the
-    end alone); ``options``: more of ``nerf-stage train``'s, for the probe and the run.
+    end alone); ``options``: more of ``nerf-stage train``'s, for the probe and the run;
+    ``share``: the first stage's share of the iterations and of ``seconds``.
 
     ``nerf-stage train --minutes`` ends each stage at its share of the budget, its learning
     rates then decayed as at the stage's last iteration. The iterations come from the rate
@@ -221,7 +223,7 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
         with tempfile.TemporaryDirectory(prefix=".probe-", dir=run_dir.parent) as probe:
             _train(data_dir, Path(probe) / "run", strategy, backbone,
                    PROBE_ITERS * PRETRAIN_SHARE, PROBE_ITERS * (1 - PRETRAIN_SHARE), 0.0,
-                   options=options)
+                   PRETRAIN_SHARE, options=options)
             probed = load_run(Path(probe) / "run").record.log
         # the first stage's second half: past the warm-up, and before the palette stage's
         # start (a splat run's footprints of every view) that the rate would count
@@ -230,11 +232,10 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
         rate = (len(probed) - 1) / (probed[-1]["seconds"] - probed[0]["seconds"])
         expected = SPEED_UP * seconds * rate
         # a splat run's rgb strategy trains its first stage alone
-        first = HEADROOM[BACKBONES[backbone].is_field] * (
-            1 if strategy == "rgb" else PRETRAIN_SHARE)
+        first = HEADROOM[BACKBONES[backbone].is_field] * (1 if strategy == "rgb" else share)
         with Snapshots(run_dir / "checkpoint.pt", snapshots):
             _train(data_dir, run_dir, strategy, backbone, expected * first,
-                   expected * HEADROOM[True] * (1 - PRETRAIN_SHARE), seconds / 60,
+                   expected * HEADROOM[True] * (1 - share), seconds / 60, share,
                    every=max(1, round(expected / max(1, curve_points))), log=log,
                    options=options)
     curve = checkpoint_curve(snapshots, data, test) if curve_points else []
@@ -250,16 +251,16 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
 
 
 def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, pretrain: float,
-           finetune: float, minutes: float, every: int = 500, log: Path | None = None,
-           options: tuple[str, ...] = ()) -> str:
+           finetune: float, minutes: float, share: float, every: int = 500,
+           log: Path | None = None, options: tuple[str, ...] = ()) -> str:
     """``nerf-stage train`` for ``pretrain`` and ``finetune`` iterations within ``minutes``
-    (0: no limit), pretraining within its share of them in the defaults' ratio, with a
-    checkpoint ``every`` so many iterations and more ``options``; its output (``_run``)."""
+    (0: no limit), pretraining within ``share`` of them, with a checkpoint ``every`` so many
+    iterations and more ``options``; its output (``_run``)."""
     return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--backbone", backbone,
                  "--pretrain-iters", str(max(1, round(pretrain))),
                  "--finetune-iters", str(max(1, round(finetune))),
-                 "--minutes", str(minutes), "--pretrain-minutes", str(minutes * PRETRAIN_SHARE),
+                 "--minutes", str(minutes), "--pretrain-minutes", str(minutes * share),
                  "--checkpoint-every", str(every), *options],
                 f"train {strategy}", log)
 
@@ -358,9 +359,14 @@ def main() -> None:
                         help="more options of nerf-stage train for our runs, in one string "
                              "(e.g. '--batch-rays 16384'; runs are cached by method: give "
                              "such runs their own --out)")
+    parser.add_argument("--pretrain-share", type=float, default=PRETRAIN_SHARE,
+                        help="our two-stage runs' share of the budget for their first stage "
+                             "(default: the defaults' iterations' share, P / (P + F))")
     parser.add_argument("--nerfacto-venv", type=Path,
                         default=Path("benchmarks/out/nerfacto-venv"))
     args = parser.parse_args()
+    if not 0 < args.pretrain_share < 1:
+        parser.error(f"--pretrain-share must be in (0, 1), got {args.pretrain_share}")
     results_path = args.out / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     captures = []
@@ -387,7 +393,8 @@ def main() -> None:
                     method = f"{method}-{args.backbone}"
                 strategy = "two-stage" if method.startswith("palette") else "rgb"
                 result = ours(data_dir, folder / method, strategy, args.backbone, seconds,
-                              args.curve_points, tuple(args.train_options))
+                              args.curve_points, tuple(args.train_options),
+                              args.pretrain_share)
             render = result.pop("render")
             result.update(image_scores(render, truth), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",
