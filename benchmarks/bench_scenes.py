@@ -162,7 +162,7 @@ def checkpoint_curve(snapshots: Path, data, ids) -> list[tuple[float, float]]:
     """(training seconds, PSNR of views ``ids`` of ``data``) of each checkpoint that
     ``Snapshots`` kept in ``snapshots``, in the order they were written."""
     curve = []
-    for path in sorted(snapshots.glob("*.pt")):
+    for path in sorted(snapshots.glob("*.pt"), key=lambda path: int(path.stem)):
         with tempfile.TemporaryDirectory(dir=snapshots) as folder:
             os.link(path, Path(folder) / "checkpoint.pt")
             run = load_run(folder)
