@@ -58,22 +58,14 @@ class Densification:
         """The control of an RGB stage of ``iterations`` on ``pixels`` training pixels in
         all: densifying until ``refine_stop`` of it, on the settings' schedule, scaled down
         to a stage shorter than ``schedule_iters``, to at most ``max_splats`` splats and one
-        for ``PIXELS_PER_SPLAT`` pixels. Where no multiple of ``every`` falls between the start
-        and the stop, the start comes forward to before the last one (a stage that the clock
-        keeps short densifies once: docs/splats.md, "Densifying in short stages")."""
+        for ``PIXELS_PER_SPLAT`` pixels."""
         scale = (min(1.0, iterations / settings.schedule_iters) if settings.schedule_iters
                  else 1.0)
-        stop = int(settings.refine_stop * iterations)
-        every = max(1, round(settings.refine_every * scale))
-        last = (stop - 1) // every * every  # the last multiple of every before the stop
         return cls(settings, extent, min(settings.max_splats, pixels // PIXELS_PER_SPLAT),
-                   stop, max(0, min(round(settings.refine_start * scale), last - 1)),
-                   every, max(1, round(settings.reset_every * scale)))
-
-    def densifies(self, step: int) -> bool:
-        """Whether step ``step`` densifies (after ``start``, every ``every``, before ``stop``:
-        3D Gaussian splatting's and gsplat's rule)."""
-        return self.start < step < self.stop and step % self.every == 0
+                   int(settings.refine_stop * iterations),
+                   round(settings.refine_start * scale),
+                   max(1, round(settings.refine_every * scale)),
+                   max(1, round(settings.reset_every * scale)))
 
     def after_backward(self, model, optimiser: torch.optim.Optimizer, info: dict, step: int,
                        width: int, height: int) -> None:
@@ -82,7 +74,7 @@ class Densification:
         if step >= self.stop:
             return
         self._gather(model, info, width, height)
-        if self.densifies(step):
+        if step > self.start and step % self.every == 0:
             self._grow(model, optimiser)
             self._prune(model, optimiser, oversized=step > self.reset)
             self.grad2d = self.count = self.clipped = None
