@@ -714,6 +714,7 @@ def _start_palette(run: SplatRun, views: list) -> None:
             part = slice(first, first + PAIRS_AT_ONCE)
             light.index_add_(0, splat[part].long(), contribution[part, None]
                              * sent.index_select(0, pixel[part]))
+        del pixel, splat, contribution  # not held while the next view's are drawn
     mean = torch.cat([v.weights.view(-1, channels) for v in views]).mean(0)
     weights = light[:, :-1] / light[:, -1:].clamp(min=1e-6)
     weights = inverse_tone_map(weights.clamp(max=1 - 1e-6)) if transport else weights

@@ -106,10 +106,13 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
             torch.bincount(ids, minlength=len(index)))[:, 0])
     if not keep_pairs:
         return _Composite.apply(table, values, index, pixel, ids, light, counts, window)
-    kept = []
-    with torch.no_grad():
-        blended = _draw_bands(table, values, index, pixel, ids, light, counts, window, kept)
-    info["pairs"] = tuple(torch.cat(part) for part in zip(*kept))
+    with torch.no_grad():  # the pairs' own tensors become the kept ones: none held twice
+        blended = _draw_bands(table, values, index, pixel, ids, light, counts, window,
+                              keep=True)
+        for first in range(0, len(ids), BAND_PIXELS):
+            part = ids[first:first + BAND_PIXELS]
+            part.copy_(index.index_select(0, part))
+    info["pairs"] = (pixel, ids, light)
     return blended
 
 
@@ -196,9 +199,9 @@ def _blends(table, index, pixel, ids, light, counts, window) -> Iterator[_Blend]
 
 
 def _draw_bands(table, values, index, pixel, ids, light, counts, window,
-           kept: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """``_Composite``'s (pixels, M) values and (pixels,) opacity, a band at a time; each
-    band's (p,) pixel, splat and contribution appended to ``kept`` when given."""
+                keep: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_Composite``'s (pixels, M) values and (pixels,) opacity, a band at a time; with
+    ``keep``, each pair's ``light`` is replaced by its contribution (in place)."""
     pixels = window[2] * window[3]
     drawn, opacity = values.new_zeros(pixels, values.shape[1]), values.new_zeros(pixels)
     for blend in _blends(table, index, pixel, ids, light, counts, window):
@@ -206,8 +209,8 @@ def _draw_bands(table, values, index, pixel, ids, light, counts, window,
         drawn.index_add_(0, blend.pixel,
                          contribution[:, None] * values.index_select(0, blend.splat))
         opacity.index_add_(0, blend.pixel, contribution)
-        if kept is not None:
-            kept.append((blend.pixel.int(), blend.splat.int(), contribution))
+        if keep:
+            blend.light.copy_(contribution)  # a view of ``light``
     return drawn, opacity
 
 
@@ -300,8 +303,11 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     bands = [band for band in bands if band is not None]
     if not bands:
         return None
-    pixel, ids, light = (torch.cat(part) for part in zip(*bands))
-    return table, index, pixel, ids, light, tuple(len(band[0]) for band in bands)
+    counts = tuple(len(band[0]) for band in bands)
+    parts = [list(part) for part in zip(*bands)]
+    del bands  # each of pixel, ids and light joined, its bands' parts then freed
+    pixel, ids, light = (torch.cat(parts.pop(0)) for _ in range(3))
+    return table, index, pixel, ids, light, counts
 
 
 @torch.no_grad()
