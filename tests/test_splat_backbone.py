@@ -127,14 +127,17 @@ def test_draw_reports_the_screen_positions_densification_reads():
 
 def test_the_reported_pairs_make_up_the_view():
     """``info['pairs']`` (pixel, splat, contribution) sums to the drawn values: what the
-    palette stage's start and the regions read."""
+    palette stage's start and the regions read; the first splat behind the camera, so
+    that the drawn projections' indices are not the splats'."""
     means, cov, values, opacities = few_splats()
+    means[0] = torch.tensor([0.0, 0.0, 4.0], dtype=means.dtype)
     info = {}
     drawn, acc = draw(means, cov, values, opacities, POSE, CAMERA, 64, info, keep_pairs=True)
     pixel, splat, contribution = info["pairs"]
     rebuilt = torch.zeros_like(drawn).index_add(0, pixel, contribution[:, None] * values[splat])
     assert torch.allclose(rebuilt, drawn, atol=1e-12)
     assert torch.allclose(torch.zeros_like(acc).index_add(0, pixel, contribution), acc)
+    assert 0 not in splat.tolist() and len(set(splat.tolist())) > 1
 
 
 def test_spherical_harmonics_are_orthonormal_over_the_sphere():
