@@ -303,11 +303,8 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     bands = [band for band in bands if band is not None]
     if not bands:
         return None
-    counts = tuple(len(band[0]) for band in bands)
-    parts = [list(part) for part in zip(*bands)]
-    del bands  # each of pixel, ids and light joined, its bands' parts then freed
-    pixel, ids, light = (torch.cat(parts.pop(0)) for _ in range(3))
-    return table, index, pixel, ids, light, counts
+    pixel, ids, light = (torch.cat(part) for part in zip(*bands))
+    return table, index, pixel, ids, light, tuple(len(band[0]) for band in bands)
 
 
 @torch.no_grad()
