@@ -109,7 +109,7 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     with torch.no_grad():  # the pairs' own tensors become the kept ones: none held twice
         blended = _draw_bands(table, values, index, pixel, ids, light, counts, window,
                               keep=True)
-        for first in range(0, len(ids), BAND_PIXELS):
+        for first in range(0, len(ids), BAND_PIXELS):  # each splat over its projection
             part = ids[first:first + BAND_PIXELS]
             part.copy_(index.index_select(0, part))
     info["pairs"] = (pixel, ids, light)
