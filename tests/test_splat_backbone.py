@@ -90,6 +90,19 @@ def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel(bands):
     assert torch.allclose(drawn, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
 
 
+def test_without_a_reach_a_splat_near_the_camera_is_drawn_whole():
+    """Cut off at a reach (training's bound on a view's pairs), a splat wider than it on
+    screen is drawn square and reported clipped; without one (renders), it is drawn whole."""
+    means, cov, values, opacities = few_splats()
+    means[0] = torch.tensor([0.0, 0.0, 2.2], dtype=means.dtype)  # 0.8 from the camera
+    info = {}
+    cut, _ = draw(means, cov, values, opacities, POSE, CAMERA, 2, info)
+    whole, acc = draw(means, cov, values, opacities, POSE, CAMERA, None)
+    out, want = brute_force(means, cov, values, opacities, POSE, CAMERA)
+    assert torch.allclose(whole, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
+    assert 0 in info["clipped"].tolist() and not torch.allclose(cut, out, atol=1e-3)
+
+
 def test_a_window_of_a_view_is_that_part_of_the_whole_view():
     splats = few_splats()
     whole, acc = draw(*splats, POSE, CAMERA, reach=64)
@@ -545,12 +558,10 @@ def test_a_splat_runs_file_draws_what_the_run_renders_from_every_camera(splat_ru
     splats = run.splats({})
     poses = run.dataset().poses[:2]
     rendered, _ = run.render(poses)
-    reach = run.config.splats.reach
-    drawn, _ = render_splats(splats, poses, run.intrinsics, reach=reach)
+    drawn, _ = render_splats(splats, poses, run.intrinsics)
     assert splats.residual is not None and np.abs(splats.residual).max() > 1e-4
     assert np.abs(drawn - rendered).max() < 1e-4
-    diffuse, _ = render_splats(replace(splats, residual=None), poses, run.intrinsics,
-                               reach=reach)
+    diffuse, _ = render_splats(replace(splats, residual=None), poses, run.intrinsics)
     assert np.abs(diffuse - rendered).max() > 1e-3  # the residual is there to lose
 
 

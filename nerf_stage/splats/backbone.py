@@ -190,10 +190,11 @@ class SplatRun(RunBase):
     def render(self, poses: np.ndarray, progress: bool = False,
                intrinsics: Intrinsics | list[Intrinsics] | None = None,
                samples: bool = False) -> tuple:
-        """Draw whole views (``Run.render``'s contract): (N, H, W, C) values premultiplied
-        by opacity, (N, H, W) opacity and, with ``samples``, ``render.samples.PixelSamples``: each
-        pixel's splats at their centres, with their contributions (those below
-        ``KEEP_WEIGHT`` dropped, but each pixel's strongest)."""
+        """Draw whole views (``Run.render``'s contract), each splat whole as the browser
+        draws it, not cut off at the reach that training draws with: (N, H, W, C) values
+        premultiplied by opacity, (N, H, W) opacity and, with ``samples``,
+        ``render.samples.PixelSamples``: each pixel's splats at their centres, with their
+        contributions (those below ``KEEP_WEIGHT`` dropped, but each pixel's strongest)."""
         cameras = (intrinsics if isinstance(intrinsics, list)
                    else [intrinsics or self.intrinsics] * len(poses))
         covariance, opacity = self.model.gaussians()
@@ -205,7 +206,7 @@ class SplatRun(RunBase):
             local = normalised_pose(pose, self.box, self.device)
             info = {}
             drawn, acc = draw(self.model.means, covariance, self.model.values(local[:3, 3]),
-                              opacity, local, camera, self.config.splats.reach, info,
+                              opacity, local, camera, None, info,
                               keep_pairs=samples)
             values.append(drawn.view(camera.height, camera.width, -1).cpu().numpy())
             accs.append(acc.view(camera.height, camera.width).cpu().numpy())

@@ -48,11 +48,10 @@ BAND_PIXELS = 1 << 14
 
 @torch.no_grad()
 def render_splats(splats: Splats, poses: np.ndarray, camera: Intrinsics,
-                  progress: bool = False, reach: int = 32) -> tuple[np.ndarray, np.ndarray]:
+                  progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Draw ``splats`` from (N, 4, 4) ``poses`` (OpenGL camera-to-world) with ``camera``,
-    each view with the weights seen from its camera (``Splats.view_weights``) and each
-    splat at most ``reach`` pixels from its centre (``draw``; a splat run's own, to draw
-    what it renders).
+    each view with the weights seen from its camera (``Splats.view_weights``), each splat
+    whole (``draw`` without a reach), as a splat run renders and the browser draws them.
 
     Returns
     -------
@@ -67,7 +66,7 @@ def render_splats(splats: Splats, poses: np.ndarray, camera: Intrinsics,
         if splats.residual is not None:
             weights = torch.as_tensor(splats.view_weights(pose[:3, 3]))
         drawn, opacity = draw(centres, covariances, weights, opacities, torch.as_tensor(pose),
-                              camera, reach)
+                              camera, None)
         out_weights.append(drawn.view(h, w, -1).float().numpy())
         out_opacity.append(opacity.view(h, w).float().numpy())
     return np.stack(out_weights), np.stack(out_opacity)
@@ -80,12 +79,14 @@ def splat_tensors(splats: Splats) -> tuple[torch.Tensor, ...]:
 
 
 def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: Intrinsics,
-         reach: int = 32, info: dict | None = None,
+         reach: int | None = 32, info: dict | None = None,
          window: tuple[int, int, int, int] | None = None,
          keep_pairs: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """(H W, M) composited ``values`` and (H W,) opacity of one view (differentiable in the
-    splats' parameters), each splat drawn at most ``reach`` pixels from its centre; with a
-    ``window`` (x, y, width, height) of the view, that part of it only (W x H of it).
+    splats' parameters), each splat drawn at most ``reach`` pixels from its centre (None:
+    whole, however near the camera; training cuts splats off at a reach that bounds a
+    view's pairs, and splits those it cuts); with a ``window`` (x, y, width, height) of the
+    view, that part of it only (W x H of it).
 
     With an ``info`` dict, it receives what densification needs: ``means2d`` (F, 2), the
     pixel positions of the F splats in front of the camera (gradients retained), their
@@ -280,14 +281,15 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     opacities = opacities.index_select(0, index)
     level = torch.sqrt(2 * torch.log((255 * opacities.detach()).clamp(min=1)))
     rx, ry = level * torch.sqrt(a.detach()), level * torch.sqrt(c.detach())
-    wide = (rx > reach) | (ry > reach)
-    rx, ry = rx.clamp(max=reach), ry.clamp(max=reach)
+    if reach is not None:
+        wide = (rx > reach) | (ry > reach)
+        rx, ry = rx.clamp(max=reach), ry.clamp(max=reach)
     x0 = (u.detach() - rx).floor().clamp(left, left + width)
     x1 = (u.detach() + rx).ceil().clamp(left, left + width)
     y0 = (v.detach() - ry).floor().clamp(top, top + height)
     y1 = (v.detach() + ry).ceil().clamp(top, top + height)
     shown = (x1 > x0) & (y1 > y0)
-    if info is not None:  # cut off square at ``reach`` in the view: densification splits them
+    if info is not None and reach is not None:  # cut off square: densification splits them
         info["clipped"] = index[wide & shown]
     if not shown.any():
         return None
