@@ -153,58 +153,6 @@ def test_the_reported_pairs_make_up_the_view():
     assert 0 not in splat.tolist() and len(set(splat.tolist())) > 1
 
 
-def test_the_point_depth_loss_sums_each_pairs_squared_distance_from_its_target():
-    """From the two moments drawn beside the colours, each point pixel's loss is the sum
-    over its pairs of contribution x (u - target)^2 (the grid's ``losses.depth_loss``)."""
-    means, cov, values, opacities = few_splats()
-    u = torch.linalg.norm(means - POSE[:3, 3], dim=1)
-    info = {}
-    drawn, acc = draw(means, cov, torch.cat([values, u[:, None], u[:, None] ** 2], 1),
-                      opacities, POSE, CAMERA, 64, info, keep_pairs=True)
-    pixels = torch.tensor([0, 17, 55, 60, 61, 119])
-    targets = torch.tensor([3.0, 2.5, 2.9, 3.3, 2.0, 2.8], dtype=u.dtype)
-    rest, loss = backbone._point_depth_loss(drawn, acc, (pixels, targets))
-    pixel, splat, contribution = info["pairs"]
-    expected = sum(float((contribution[pixel == p] * (u[splat[pixel == p]] - t) ** 2).sum())
-                   for p, t in zip(pixels.tolist(), targets))
-    assert float(loss) == pytest.approx(expected / len(pixels), rel=1e-9)
-    assert torch.equal(rest, drawn[:, :4])
-
-
-@pytest.mark.parametrize("unbounded", [False, True])
-def test_a_splat_at_a_seen_point_is_where_its_pixel_asks_its_ray_to_end(unbounded):
-    """A splat's marching parameter is the point depth targets' (``view_targets``), in a
-    bounded box and beyond an unbounded one's; a patch of the view keeps its points' pixels."""
-    from types import SimpleNamespace
-
-    from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.train.point_depth import view_targets
-
-    box = SceneBox(np.array([0.0, 0.0, 0.5]), np.full(3, 0.4), unbounded=unbounded)
-    pose = POSE.numpy()
-    points = np.array([[0.8, 0.05, -0.6], [-0.2, 0.1, 0.2]])  # the first beyond the box
-    pixels, targets = view_targets(points, pose, CAMERA, box)
-    assert len(pixels) == 2
-    run = SimpleNamespace(model=SimpleNamespace(
-        means=torch.as_tensor((points - box.centre) / box.scale, dtype=torch.float32)), box=box)
-    eye = torch.as_tensor((pose[:3, 3] - box.centre) / box.scale, dtype=torch.float32)
-    assert backbone._marching_parameter(run, eye).numpy() == pytest.approx(targets, rel=1e-5)
-
-    view = backbone._View(POSE.float(), CAMERA, torch.zeros(10, 12, 3), torch.zeros(10, 12, 2),
-                          torch.ones(10, 12), 0, (0, 0, 12, 10),
-                          (torch.as_tensor(pixels), torch.as_tensor(targets)))
-    kept_in_all = 0
-    for seed in range(8):
-        patch = backbone._patch(view, 6, torch.Generator().manual_seed(seed))
-        x, y, w, _ = patch.window
-        kept, kept_targets = patch.points
-        whole = (kept // w + y) * CAMERA.width + kept % w + x
-        assert set(zip(whole.tolist(), kept_targets.tolist())) <= set(zip(
-            pixels.tolist(), targets.tolist()))
-        kept_in_all += len(kept)
-    assert kept_in_all
-
-
 def test_spherical_harmonics_are_orthonormal_over_the_sphere():
     """The basis integrates to the identity over the unit sphere (a Fibonacci grid of
     directions): the constants and signs are those of real spherical harmonics."""

@@ -45,7 +45,7 @@ from ..data.cameras import Intrinsics, project
 from ..data.dataset import Dataset
 from ..data.points import Points
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB, inverse_tone_map, tone_map
-from ..render.contraction import distance, parameter, ray_interval
+from ..render.contraction import distance, parameter
 from ..render.march import box_intersection
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, visual_hull
@@ -53,7 +53,6 @@ from ..train.appearance import Appearance, exposure_free_weights
 from ..train.config import Strategy, TrainConfig
 from ..train.losses import recorded_rgb_loss, ssim_loss, weight_loss
 from ..train.metrics import psnr_from_mse
-from ..train.point_depth import view_targets
 from ..train.run import (
     CHECKPOINT,
     CONFIG,
@@ -500,10 +499,7 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
 class _View:
     """A training image (or a ``window`` of it: x, y, width, height) on the device: its
     normalised pose, camera, (H, W, 3) colours, (H, W, M) weights (premultiplied by alpha
-    for the additive basis), (H, W) alpha, its index among the training images and, where
-    the capture's sparse points are seen in it, ``points``: those (Q,) pixels of the window,
-    row by row, and the (Q,) marching parameters at which their rays should end
-    (``point_depth.view_targets``)."""
+    for the additive basis), (H, W) alpha and its index among the training images."""
 
     pose: torch.Tensor
     camera: Intrinsics
@@ -512,7 +508,6 @@ class _View:
     alpha: torch.Tensor
     image: int
     window: tuple[int, int, int, int]
-    points: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 def _patch(view: _View, size: int, generator: torch.Generator) -> _View:
@@ -525,30 +520,17 @@ def _patch(view: _View, size: int, generator: torch.Generator) -> _View:
     x, y = (int(torch.randint(extent - side + 1, (1,), generator=generator))
             for extent, side in ((width, w), (height, h)))
     rows, columns = slice(y, y + h), slice(x, x + w)
-    points = None
-    if view.points is not None:
-        pixels, targets = view.points
-        row, column = pixels // width - y, pixels % width - x
-        inside = (row >= 0) & (row < h) & (column >= 0) & (column < w)
-        points = row[inside] * w + column[inside], targets[inside]
     return replace(view, rgb=view.rgb[rows, columns], weights=view.weights[rows, columns],
-                   alpha=view.alpha[rows, columns], window=(x, y, w, h), points=points)
+                   alpha=view.alpha[rows, columns], window=(x, y, w, h))
 
 
 def _training_views(run: SplatRun, dataset: Dataset, train_ids, weights, device) -> list:
     def tensor(a):
         return torch.as_tensor(a, dtype=torch.float32, device=device)
 
-    def points(i):  # the depth loss's pixels and targets, where the view sees points
-        if not run.config.depth_weight or dataset.points is None:
-            return None
-        pixels, targets = view_targets(dataset.points.positions, dataset.poses[i],
-                                       dataset.camera(i), run.box)
-        return (torch.as_tensor(pixels, device=device), tensor(targets)) if len(pixels) else None
-
     return [_View(normalised_pose(dataset.poses[i], run.box, device), dataset.camera(i),
                   tensor(dataset.images[i]), tensor(weights[n]), tensor(dataset.alpha[i]), n,
-                  (0, 0, dataset.camera(i).width, dataset.camera(i).height), points(i))
+                  (0, 0, dataset.camera(i).width, dataset.camera(i).height))
             for n, i in enumerate(train_ids)]
 
 
@@ -558,26 +540,20 @@ def _loss(run: SplatRun, view: _View, terms, background, it: int, info: dict,
     palette stage, from the view's ``footprint`` when it has one); ``info`` receives what
     densification needs (``rasterise.draw``)."""
     model, config = run.model, run.config
-    depth = model.kind == RGB and view.points is not None
     if footprint is None:
         degree = min(model.degree, it // config.splats.sh_every) if model.kind == RGB else None
         covariance, opacity = model.gaussians()
-        values = model.values(view.pose[:3, 3], degree)
-        if depth:  # each splat's u and u^2 drawn too: the depth loss's moments
-            u = _marching_parameter(run, view.pose[:3, 3])
-            values = torch.cat([values, u[:, None], u[:, None] ** 2], 1)
-        values, acc = draw(model.means, covariance, values, opacity, view.pose, view.camera,
-                           config.splats.reach, info, view.window)
+        values, acc = draw(model.means, covariance, model.values(view.pose[:3, 3], degree),
+                           opacity, view.pose, view.camera, config.splats.reach, info,
+                           view.window)
     else:
         values, acc = footprint.draw(model.values(view.pose[:3, 3])), footprint.opacity
     w, h = view.window[2:]
-    values, point_loss = _point_depth_loss(values, acc, view.points) if depth else (values, 0.0)
-    values, acc = values.reshape(h, w, -1), acc.view(h, w)
+    values, acc = values.view(h, w, -1), acc.view(h, w)
     if model.kind == RGB:
         rgb = _as_recorded(run, values + (1 - acc[..., None]) * background, view)
         ssim = config.splats.ssim_weight
-        loss = (config.depth_weight * point_loss
-                + (1 - ssim) * torch.mean(torch.abs(rgb - view.rgb))
+        loss = ((1 - ssim) * torch.mean(torch.abs(rgb - view.rgb))
                 + ssim * ssim_loss(rgb, view.rgb)
                 + config.opacity_weight * torch.mean((acc - view.alpha) ** 2))
     else:
@@ -588,32 +564,6 @@ def _loss(run: SplatRun, view: _View, terms, background, it: int, info: dict,
     with torch.no_grad():
         mse = float(torch.mean((rgb.clamp(0, 1) - view.rgb) ** 2))
     return loss, psnr_from_mse(max(mse, 1e-10))
-
-
-def _point_depth_loss(values: torch.Tensor, acc: torch.Tensor,
-                      points: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, ...]:
-    """(P, C) drawn values without their last two channels, the composited u and u^2 of each
-    pixel's splats (``_marching_parameter``), and the mean over the (Q,) ``points`` pixels of
-    sum_i c_i (u_i - target)^2 over their splats' contributions c: the grid's depth loss
-    (``losses.depth_loss``), in which a splat in front of a pixel's point costs most."""
-    pixels, targets = points
-    first, second = values[pixels, -2], values[pixels, -1]
-    loss = torch.mean(second - 2 * targets * first + targets ** 2 * acc[pixels])
-    return values[:, :-2], loss
-
-
-def _marching_parameter(run: SplatRun, eye: torch.Tensor) -> torch.Tensor:
-    """(S,) each splat's centre's distance from ``eye`` in the rays' marching parameter
-    (``point_depth.view_targets``'s): the distance in a bounded box, contracted beyond an
-    unbounded one's, along the ray through the centre (its bend held fixed)."""
-    offset = run.model.means - eye
-    t = torch.linalg.norm(offset, dim=1).clamp(min=1e-9)
-    if not run.box.unbounded:
-        return t
-    with torch.no_grad():
-        _, exits = box_intersection(eye.expand_as(offset), offset / t[:, None],
-                                    torch.ones(3, device=eye.device))
-    return parameter(t, ray_interval(exits)[2])
 
 
 def _as_recorded(run: SplatRun, rgb: torch.Tensor, view: _View) -> torch.Tensor:

@@ -98,8 +98,8 @@ class TrainConfig:
     that views from one ring leave (docs/nerf.md, "Unbounded scenes"); box scenes do without
     it."""
     depth_weight: float = 0.1
-    """Weight of the depth loss on the training pixels where the capture's sparse points are
-    seen (``point_depth``, ``losses.depth_loss``), while the density (the splats' geometry)
+    """Weight of the depth loss (NeRF backbones) on the training pixels where the capture's
+    sparse points are seen (``point_depth``, ``losses.depth_loss``), while the density
     trains, against floaters and walls at the wrong depth (docs/real_photos.md); captures
     without points train without it; 0: off."""
     near_gradient: float = 2.0

@@ -37,38 +37,30 @@ def point_targets(points: np.ndarray, poses: np.ndarray, cameras: list[Intrinsic
     -------
     pixels : (Q,) int64 indices into the training pixels, view by view, row by row
         (``trainer._ray_bank``'s order).
-    targets : (Q,) float32 ``view_targets``'s.
+    targets : (Q,) float32 the point's distance from the camera in the rays' marching
+        parameter (``march.ray_interval``: the normalised distance in a bounded box, the
+        contracted parameter beyond an unbounded scene's box).
     """
-    pixels, targets = [], []
+    pixels, distances, origins, directions = [], [], [], []
     for view, (pose, camera) in enumerate(zip(poses, cameras)):
-        seen, target = view_targets(points, pose, camera, box)
-        pixels.append(view * camera.width * camera.height + seen)
-        targets.append(target)
-    return np.concatenate(pixels), np.concatenate(targets)
-
-
-def view_targets(points: np.ndarray, pose: np.ndarray, camera: Intrinsics,
-                 box: SceneBox) -> tuple[np.ndarray, np.ndarray]:
-    """The pixels of one view (camera-to-world ``pose``, OpenGL axes) on which one of the
-    (P, 3) world ``points`` is seen: (Q,) int64 indices, row by row, and (Q,) float32 the
-    point's distance from the camera in the rays' marching parameter (``march.ray_interval``:
-    the normalised distance in a bounded box, the contracted parameter beyond an unbounded
-    scene's box, ``contraction.parameter``)."""
-    offset = points - pose[:3, 3]
-    x, y, depth = project(points, pose, camera)
-    inside = (depth > 0) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
-    column, row = x[inside].astype(np.int64), y[inside].astype(np.int64)
-    distance = np.linalg.norm(offset[inside], axis=1)
-    cell = (row // CELL) * (camera.width // CELL + 1) + column // CELL
-    nearest = np.full(cell.max(initial=0) + 1, np.inf)
-    np.minimum.at(nearest, cell, distance)
-    seen = distance <= TOLERANCE * nearest[cell]
-    distance = distance[seen] / box.scale
+        offset = points - pose[:3, 3]
+        x, y, depth = project(points, pose, camera)
+        inside = (depth > 0) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+        column, row = x[inside].astype(np.int64), y[inside].astype(np.int64)
+        distance = np.linalg.norm(offset[inside], axis=1)
+        cell = (row // CELL) * (camera.width // CELL + 1) + column // CELL
+        nearest = np.full(cell.max(initial=0) + 1, np.inf)
+        np.minimum.at(nearest, cell, distance)
+        seen = distance <= TOLERANCE * nearest[cell]
+        pixels.append(view * camera.width * camera.height + row[seen] * camera.width
+                      + column[seen])
+        distances.append(distance[seen] / box.scale)
+        origins.append(np.broadcast_to((pose[:3, 3] - box.centre) / box.scale, (seen.sum(), 3)))
+        directions.append(offset[inside][seen] / distance[seen, None])
+    pixels, distances = np.concatenate(pixels), np.concatenate(distances)
     if box.unbounded:  # beyond the box, the parameter of the contracted ray (disparity-like)
-        origins = np.broadcast_to((pose[:3, 3] - box.centre) / box.scale, (seen.sum(), 3))
-        _, exits = box_intersection(torch.as_tensor(origins),
-                                    torch.as_tensor(offset[inside][seen] / distance[:, None]
-                                                    / box.scale),
+        _, exits = box_intersection(torch.as_tensor(np.concatenate(origins)),
+                                    torch.as_tensor(np.concatenate(directions)),
                                     torch.ones(3, dtype=torch.float64))
-        distance = parameter(torch.as_tensor(distance), ray_interval(exits)[2]).numpy()
-    return row[seen] * camera.width + column[seen], distance.astype(np.float32)
+        distances = parameter(torch.as_tensor(distances), ray_interval(exits)[2]).numpy()
+    return pixels, distances.astype(np.float32)
