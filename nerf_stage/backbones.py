@@ -164,7 +164,8 @@ class SplatConfig:
     ssim_weight: float = 0.2
     """Weight of 1 - SSIM beside L1 in the RGB stage's loss."""
     reach: int = 64
-    """Pixels from its centre that a splat is drawn to at most."""
+    """Pixels from its centre that training draws a splat to at most (a bound on a view's
+    pairs; densification splits the splats it cuts off); renders draw each splat whole."""
     patch: int = 0
     """Side in pixels of the random square of a training image that an iteration draws and
     compares (0: the whole image): an iteration's cost follows its pixels."""
