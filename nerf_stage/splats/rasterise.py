@@ -239,7 +239,7 @@ def _transmittance(pixel: torch.Tensor, alpha: torch.Tensor, pixels: int) -> tor
     return torch.exp(before.to(alpha.dtype))  # local sums: float32 holds them
 
 
-def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int,
+def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int | None,
            info: dict | None, window: tuple[int, int, int, int]):
     """The (pixel, splat, alpha) pairs of one view's ``window`` above 1/255 with at least
     ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel (of the window),
