@@ -72,15 +72,12 @@ CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")
 PROBE_ITERS = 40  # iterations of the probe that times our NeRF
 SPEED_UP = 2.0  # how much faster iterations run than the probe's (the occupancy grid prunes)
-#: Iterations planned beyond the expected ones for the first stage, by whether the backbone
-#: is a field: a field's stages end by the clock with their rates decayed by it, so a plan
-#: far longer than the budget costs nothing and leaves the clock to end the stage
-#: (iterations speed up from capture to capture by up to ten times once space is pruned);
-#: splats grow on a schedule of iterations, which a longer plan would not finish, and their
-#: steps slow down as they grow rather than speed up: their plan is the probe's rate alone.
-#: The palette stage, where splats no longer grow, is planned as long as a field's: the
-#: clock ends it at the budget (``--pretrain-minutes`` keeps pretraining's share).
-HEADROOM = {True: 10.0, False: 1.0 / SPEED_UP}
+#: Iterations planned beyond the expected ones: every stage ends by the clock, its learning
+#: rates decayed by it and a splat run's densification stopped at its share of the stage's
+#: time (``trainer.stage_progress``), so a plan far longer than the budget costs nothing and
+#: leaves the clock to end the stage (a field's iterations speed up from capture to capture
+#: by up to ten times once space is pruned).
+HEADROOM = 10.0
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
@@ -232,10 +229,10 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
         rate = (len(probed) - 1) / (probed[-1]["seconds"] - probed[0]["seconds"])
         expected = SPEED_UP * seconds * rate
         # a splat run's rgb strategy trains its first stage alone
-        first = HEADROOM[BACKBONES[backbone].is_field] * (1 if strategy == "rgb" else share)
+        first = HEADROOM * (1 if strategy == "rgb" else share)
         with Snapshots(run_dir / "checkpoint.pt", snapshots):
             _train(data_dir, run_dir, strategy, backbone, expected * first,
-                   expected * HEADROOM[True] * (1 - share), seconds / 60, share,
+                   expected * HEADROOM * (1 - share), seconds / 60, share,
                    every=max(1, round(expected / max(1, curve_points))), log=log,
                    options=options)
     curve = checkpoint_curve(snapshots, data, test) if curve_points else []

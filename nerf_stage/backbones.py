@@ -173,7 +173,8 @@ class SplatConfig:
     """Iteration of the first densification (3D Gaussian splatting's 500 is for a stage of
     30,000: a stage that the clock ends after a few hundred would barely densify)."""
     refine_stop: float = 0.5
-    """Densification stops at this share of the RGB stage's iterations."""
+    """Densification stops at this share of the RGB stage: of its iterations or, when the
+    clock ends it (``--minutes``), of its time if more (``trainer.stage_progress``)."""
     refine_every: int = 100
     """Iterations between densifications."""
     reset_every: int = 3000

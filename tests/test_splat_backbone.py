@@ -221,7 +221,7 @@ def test_densification_clones_splits_and_prunes_within_the_bounds():
     info = {"means2d": torch.zeros(10, 2), "front": torch.arange(10), "drawn": torch.arange(10)}
     info["means2d"].grad = torch.arange(1.0, 11.0)[:, None].repeat(1, 2) * 1e-3
     control = Densification.for_stage(settings, 1.0, 200, PIXELS)
-    control.after_backward(model, optimiser, info, 1, 100, 100)
+    control.after_backward(model, optimiser, info, 1, 0.0, 100, 100)
     assert len(model.means) == 12  # 6 untouched, 2 + 2 clones, 2 halves of splat 8
     assert torch.equal(model.means[:8], means[:8]) and torch.equal(model.means[8:10], means[6:8])
     assert torch.allclose(model.scales[10:], scales[8] - math.log(1.6))
@@ -245,7 +245,7 @@ def test_densification_grows_no_further_than_the_training_pixels_allow():
     info["means2d"].grad = torch.arange(1.0, 11.0)[:, None].repeat(1, 2)
     control = Densification.for_stage(settings, 1.0, 200, 12 * PIXELS_PER_SPLAT + 1)
     assert control.limit == 12
-    control.after_backward(model, optimiser, info, 1, 100, 100)
+    control.after_backward(model, optimiser, info, 1, 0.0, 100, 100)
     assert len(model.means) == 12
 
 
@@ -273,7 +273,7 @@ def test_splats_cut_off_at_the_reach_are_split():
     info["means2d"].grad = torch.zeros(2, 2)  # no pull at all
     scale = model.scales[0].detach().clone()
     control = Densification.for_stage(settings, 1.0, 200, PIXELS)
-    control.after_backward(model, optimiser, info, 1, 100, 100)
+    control.after_backward(model, optimiser, info, 1, 0.0, 100, 100)
     assert len(model.means) == 3  # splat 1 kept, splat 0 in two halves
     assert torch.allclose(model.scales[1:], scale - math.log(1.6))
 
@@ -283,11 +283,28 @@ def test_a_short_stage_scales_the_densification_schedule_down():
     proportion for a stage of 300; as given without it, or for a longer stage."""
     settings = SplatConfig(schedule_iters=30_000, refine_start=500)  # 3D Gaussian splatting's
     short = Densification.for_stage(settings, 1.0, 300, PIXELS)
-    assert (short.start, short.every, short.reset, short.stop) == (5, 1, 30, 150)
+    assert (short.start, short.every, short.reset) == (5, 1, 30)
     given = Densification.for_stage(replace(settings, schedule_iters=0), 1.0, 300, PIXELS)
     assert (given.start, given.every, given.reset) == (500, 100, 3000)
     long = Densification.for_stage(settings, 1.0, 60_000, PIXELS)
     assert (long.start, long.every, long.reset) == (500, 100, 3000)
+
+
+def test_densification_stops_at_refine_stop_of_the_stage():
+    """Past ``refine_stop`` of its stage (its iterations' share or its clock's, as
+    ``stage_progress`` gives it) the control neither grows, prunes nor resets."""
+    settings = SplatConfig(initial=4, max_splats=20, refine_start=0, refine_every=1,
+                           reset_every=1, refine_stop=0.5)
+    for progress, splats in ((0.49, 11), (0.5, 10)):  # grown by two, one pruned; or as it was
+        model = _rgb_model(10)
+        with torch.no_grad():
+            model.opacities[9] = -10.0  # nearly transparent: pruned while densifying
+        info = {"means2d": torch.zeros(10, 2), "front": torch.arange(10),
+                "drawn": torch.arange(10)}
+        info["means2d"].grad = torch.ones(10, 2)  # every splat pulled hard
+        control = Densification.for_stage(settings, 1.0, 200, 12 * PIXELS_PER_SPLAT + 1)
+        control.after_backward(model, _optimiser(model), info, 1, progress, 100, 100)
+        assert len(model.means) == splats
 
 
 def test_an_opacity_reset_caps_every_opacity():
@@ -295,7 +312,7 @@ def test_an_opacity_reset_caps_every_opacity():
     optimiser = _optimiser(model)
     settings = SplatConfig(initial=4, max_splats=10, reset_every=5, refine_start=100)
     control = Densification.for_stage(settings, 1.0, 200, PIXELS)
-    control.after_backward(model, optimiser, {}, 5, 10, 10)
+    control.after_backward(model, optimiser, {}, 5, 0.0, 10, 10)
     assert torch.sigmoid(model.opacities).max() <= 2 * settings.prune_opacity + 1e-6
 
 
@@ -736,6 +753,7 @@ def test_the_palette_stage_decays_every_rate_to_lr_decay():
     """Over the RGB stage only the centres' rate decays (to a hundredth, 3D Gaussian
     splatting's); over the palette stage every rate decays to ``lr_decay`` of its start."""
     from nerf_stage.splats.backbone import _rates, _set_rates
+    from nerf_stage.train.trainer import stage_progress
 
     config = TrainConfig(backbone="splats", pretrain_iters=10, finetune_iters=10, lr_decay=0.25)
     names = ("means", "colours", "weights", "residual")
@@ -744,7 +762,7 @@ def test_the_palette_stage_decays_every_rate_to_lr_decay():
     start = _rates(config.splats, 2.0)
     rates = {}
     for it in (5, 15, 20):
-        _set_rates(optimiser, config, 2.0, it, [], 20)
+        _set_rates(optimiser, config, 2.0, it, stage_progress(config, it, [], 20))
         rates[it] = {group["name"]: group["lr"] for group in optimiser.param_groups}
     assert rates[5]["means"] == pytest.approx(start["means"] * 0.01 ** 0.5)
     assert rates[5]["colours"] == 1.0  # as the optimiser had it

@@ -468,7 +468,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
         index = window[int(torch.randint(len(window), (1,), generator=generator))]
         footprint = footprints[index] if footprints else None
         visits += footprint is not None
-        _set_rates(optimiser, config, extent, it, log, last)
+        progress = stage_progress(config, it, log, last)
+        _set_rates(optimiser, config, extent, it, progress)
         view = views[index] if footprint else _patch(views[index], settings.patch, generator)
         info = {}
         loss, psnr = _loss(run, view, terms, background, it, info, footprint)
@@ -479,8 +480,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
                              "seed")
         loss.backward()
         if run.kind == RGB:
-            strategy.after_backward(run.model, optimiser, info, it + 1, view.window[2],
-                                    view.window[3])
+            strategy.after_backward(run.model, optimiser, info, it + 1, progress,
+                                    view.window[2], view.window[3])
         optimiser.step()
         seconds = time.perf_counter() - clock
         log.append({"iteration": it + 1, "seconds": seconds, "loss": loss.item(), "psnr": psnr,
@@ -745,12 +746,12 @@ def _rates(settings: SplatConfig, extent: float) -> dict[str, float]:
             "appearance": 1e-3}
 
 
-def _set_rates(optimiser, config: TrainConfig, extent: float, it: int, log: list,
-               last: int) -> None:
-    """Over the RGB stage, the centres' rate decays exponentially to a hundredth (3D
-    Gaussian splatting's; the geometry is frozen after it); over the palette stage, every
-    rate to ``lr_decay`` of its start (``stage_progress``)."""
-    progress = stage_progress(config, it, log, last)
+def _set_rates(optimiser, config: TrainConfig, extent: float, it: int,
+               progress: float) -> None:
+    """At iteration ``it``, ``progress`` through its stage (``stage_progress``): over the RGB
+    stage, the centres' rate decays exponentially to a hundredth (3D Gaussian splatting's;
+    the geometry is frozen after it); over the palette stage, every rate to ``lr_decay`` of
+    its start."""
     palette = it >= config.pretrain_iters
     rates = _rates(config.splats, extent)
     for group in optimiser.param_groups:

@@ -37,14 +37,13 @@ PIXELS_PER_SPLAT = 10
 @dataclass
 class Densification:
     """The control's settings, the cameras' ``extent`` (normalised units), the most splats
-    it grows to (``limit``), the stage's last densifying iteration ``stop``, the schedule
-    (``start``, ``every``, ``reset``: ``for_stage``) and the screen-space gradients gathered
-    since the last densification."""
+    it grows to (``limit``), the schedule (``start``, ``every``, ``reset``: ``for_stage``;
+    densifying until ``settings.refine_stop`` of the stage) and the screen-space gradients
+    gathered since the last densification."""
 
     settings: SplatConfig
     extent: float
     limit: int
-    stop: int
     start: int
     every: int
     reset: int
@@ -56,22 +55,24 @@ class Densification:
     def for_stage(cls, settings: SplatConfig, extent: float, iterations: int,
                   pixels: int) -> Densification:
         """The control of an RGB stage of ``iterations`` on ``pixels`` training pixels in
-        all: densifying until ``refine_stop`` of it, on the settings' schedule, scaled down
-        to a stage shorter than ``schedule_iters``, to at most ``max_splats`` splats and one
-        for ``PIXELS_PER_SPLAT`` pixels."""
+        all: on the settings' schedule, scaled down to a stage shorter than
+        ``schedule_iters``, to at most ``max_splats`` splats and one for ``PIXELS_PER_SPLAT``
+        pixels."""
         scale = (min(1.0, iterations / settings.schedule_iters) if settings.schedule_iters
                  else 1.0)
         return cls(settings, extent, min(settings.max_splats, pixels // PIXELS_PER_SPLAT),
-                   int(settings.refine_stop * iterations),
                    round(settings.refine_start * scale),
                    max(1, round(settings.refine_every * scale)),
                    max(1, round(settings.reset_every * scale)))
 
     def after_backward(self, model, optimiser: torch.optim.Optimizer, info: dict, step: int,
-                       width: int, height: int) -> None:
-        """Gather the gradients of step ``step`` (``rasterise.draw``'s ``info`` of a view of
-        ``width`` x ``height``), then densify, prune and reset as the schedule says."""
-        if step >= self.stop:
+                       progress: float, width: int, height: int) -> None:
+        """Gather the gradients of step ``step``, ``progress`` through its stage
+        (``trainer.stage_progress``: its iterations' share or, when a clock ends the stage,
+        its time's if more), from ``rasterise.draw``'s ``info`` of a view of ``width`` x
+        ``height``; then densify, prune and reset as the schedule says, until
+        ``refine_stop`` of the stage."""
+        if progress >= self.settings.refine_stop:
             return
         self._gather(model, info, width, height)
         if step > self.start and step % self.every == 0:
