@@ -40,8 +40,10 @@ the same ``image_scores`` as ours.
         [--nerfacto-venv benchmarks/out/nerfacto-venv]
 
 Writes ``OUT/results.json``, ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
-absolute error x4) and ``OUT/NAME-curve.png`` (held-out PSNR against training time: our
-runs' checkpoints, nerfacto's end). Runs are cached in OUT by capture and method.
+absolute error x4 | for ours, how many training views see each pixel's surface, black for
+none, white for four or more: ``views_seeing``, whose PSNR by count ``results.json`` holds
+as ``by_views_seeing``) and ``OUT/NAME-curve.png`` (held-out PSNR against training time:
+our runs' checkpoints, nerfacto's end). Runs are cached in OUT by capture and method.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ from bench_scenes import Snapshots, checkpoint_curve, curve_picture, error_map, 
 from PIL import Image
 
 from nerf_stage.backbones import BACKBONES
+from nerf_stage.data.cameras import project
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.data.points import POINTS_FILE, write_points
 from nerf_stage.train.config import TrainConfig
@@ -78,6 +81,9 @@ SPEED_UP = 2.0  # how much faster iterations run than the probe's (the occupancy
 #: leaves the clock to end the stage (a field's iterations speed up from capture to capture
 #: by up to ten times once space is pruned).
 HEADROOM = 10.0
+#: A held-out pixel's surface is seen by a training view that has it in its frame and at
+#: most this many times as far as the surface it shows at that pixel (``views_seeing``).
+SEEN_DEPTH = 1.05
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
 NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
@@ -243,8 +249,49 @@ def ours(data_dir: Path, run_dir: Path, strategy: str, backbone: str, seconds: f
     render = rendered(run, data, test)
     fps = len(test) / (time.perf_counter() - start)
     return {"render": render, "curve": curve, "render_fps": fps,
+            "seen": views_seeing(run, data, test),
             "iterations": len(run.record.log), "seconds": run.record.log[-1]["seconds"],
             "peak_gb": float(memory.group(1)) if memory else None}
+
+
+def views_seeing(run, data, ids) -> np.ndarray:
+    """(N, H, W) how many training views of ``data`` see the surface that each pixel of its
+    views ``ids`` shows in ``run`` (``PixelSamples.median_points``): with it in their frame,
+    not behind the surface they show there (``SEEN_DEPTH``). Where none or one does, the
+    photos do not place what the pixel shows."""
+    def surfaces(views):  # each view's camera and (H, W, 3) surface points
+        for view in views:
+            camera = data.camera(view)
+            _, opacity, samples = run.render(data.poses[[view]], intrinsics=camera,
+                                             samples=True)
+            yield view, camera, samples.median_points(opacity.size).reshape(
+                camera.height, camera.width, 3)
+
+    depths = [(view, camera, project(points.reshape(-1, 3), data.poses[view], camera)[2]
+               .reshape(points.shape[:2]))
+              for view, camera, points in surfaces(data.indices("train"))]
+    counts = []
+    for _, _, points in surfaces(ids):
+        flat, count = points.reshape(-1, 3), 0
+        for view, camera, depth in depths:
+            x, y, z = project(flat, data.poses[view], camera)
+            inside = (z > 0) & (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+            there = depth[np.where(inside, y, 0).astype(int), np.where(inside, x, 0).astype(int)]
+            count = count + (inside & ~(z > SEEN_DEPTH * there))  # NaN: nothing drawn there
+        counts.append(np.reshape(count, points.shape[:2]))
+    return np.stack(counts)
+
+
+def scores_by_views_seeing(truth: np.ndarray, render: np.ndarray, seen: np.ndarray) -> dict:
+    """Share of the held-out pixels and their PSNR where ``seen`` (``views_seeing``) is 0,
+    1 and 2 or more."""
+    error = np.mean((render - truth) ** 2, axis=-1)
+    scores = {}
+    for name, mask in (("0", seen == 0), ("1", seen == 1), ("2+", seen >= 2)):
+        mse = float(error[mask].mean()) if mask.any() else None
+        scores[name] = {"share": float(mask.mean()), "psnr": (
+            float(-10 * np.log10(max(mse, 1e-10))) if mse is not None else None)}
+    return scores
 
 
 def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, pretrain: float,
@@ -392,11 +439,13 @@ def main() -> None:
                 result = ours(data_dir, folder / method, strategy, args.backbone, seconds,
                               args.curve_points, tuple(args.train_options),
                               args.pretrain_share)
-            render = result.pop("render")
+            render, seen = result.pop("render"), result.pop("seen", None)
             result.update(image_scores(render, truth), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",
                           train_views=len(data.indices("train")))
-            error_map(truth, render, args.out / f"{name}-{method}.png")
+            if seen is not None:
+                result["by_views_seeing"] = scores_by_views_seeing(truth, render, seen)
+            error_map(truth, render, args.out / f"{name}-{method}.png", seen=seen)
             results.setdefault(name, {})[method] = result
             print(f"{name} {method}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f} "
                   f"on {len(truth)} held-out views at {result['size']}; "

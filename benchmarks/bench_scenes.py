@@ -106,9 +106,15 @@ def rendered(run, data, ids) -> np.ndarray:
                         run.order, background, {}).recolor()
 
 
-def error_map(truth: np.ndarray, render: np.ndarray, path: Path, views: int = 3) -> None:
-    rows = [np.concatenate([t, r, np.clip(4 * np.abs(r - t), 0, 1)], 1)
-            for t, r in zip(truth[:views], render[:views])]
+def error_map(truth: np.ndarray, render: np.ndarray, path: Path, views: int = 3,
+              seen: np.ndarray | None = None) -> None:
+    """The first ``views`` views a row each: truth | render | absolute error x 4, and with
+    (N, H, W) ``seen`` counts, how many training views see each pixel's surface (black:
+    none, white: four or more)."""
+    rows = [np.concatenate([t, r, np.clip(4 * np.abs(r - t), 0, 1)]
+                           + ([] if seen is None else [np.repeat(
+                               np.clip(seen[n] / 4, 0, 1)[..., None], 3, 2)]), 1)
+            for n, (t, r) in enumerate(zip(truth[:views], render[:views]))]
     picture = (np.concatenate(rows, 0) * 255).round().astype(np.uint8)
     Image.fromarray(picture).resize((picture.shape[1] * 2, picture.shape[0] * 2),
                                     Image.NEAREST).save(path)

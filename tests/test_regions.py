@@ -87,6 +87,10 @@ def test_shares_weigh_the_first_half_of_each_pixels_light():
     # pixel 1: what leaks through behind its first does not count; pixel 2 has no samples
     assert np.allclose(share, [[[0.75, 1.0], [0.0, 0.4]]])
     assert samples.pixel.tolist() == [0, 0, 1, 1, 3, 3]
+    # the sample that crosses half of each pixel's light; none in pixel 2
+    points = samples.median_points(4)
+    assert np.array_equal(points[[0, 1, 3]], [inside, inside, outside])
+    assert np.isnan(points[2]).all()
 
 
 # --- region edits of a render ----------------------------------------------------------------

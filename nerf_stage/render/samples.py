@@ -52,6 +52,16 @@ class PixelSamples:
         total = np.bincount(self.pixel, self.weight)
         self.front = before < 0.5 * total[self.pixel]
 
+    def median_points(self, n: int) -> np.ndarray:
+        """(n, 3) float32 where each of ``n`` pixels' light reaches half its total: the
+        position of the sample that crosses it (the surface the pixel shows); NaN where a
+        pixel has no samples."""
+        points = np.full((n, 3), np.nan, np.float32)
+        pixel, point = self.pixel[self.front], self.point[self.front]
+        last = np.r_[pixel[1:] != pixel[:-1], True] if len(pixel) else np.zeros(0, bool)
+        points[pixel[last]] = point[last]
+        return points
+
     def shares(self, regions: list, shape: tuple[int, ...]) -> np.ndarray:
         """(shape) float32 in [0, 1]: for views of ``shape`` (N, H, W), each pixel's share of
         the first half of its light from samples inside any of ``regions`` (anything with
