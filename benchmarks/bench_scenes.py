@@ -111,10 +111,12 @@ def error_map(truth: np.ndarray, render: np.ndarray, path: Path, views: int = 3,
     """The first ``views`` views a row each: truth | render | absolute error x 4, and with
     (N, H, W) ``seen`` counts, how many training views see each pixel's surface (black:
     none, white: four or more)."""
-    rows = [np.concatenate([t, r, np.clip(4 * np.abs(r - t), 0, 1)]
-                           + ([] if seen is None else [np.repeat(
-                               np.clip(seen[n] / 4, 0, 1)[..., None], 3, 2)]), 1)
-            for n, (t, r) in enumerate(zip(truth[:views], render[:views]))]
+    rows = []
+    for n, (t, r) in enumerate(zip(truth[:views], render[:views])):
+        panels = [t, r, np.clip(4 * np.abs(r - t), 0, 1)]
+        if seen is not None:
+            panels.append(np.repeat(np.clip(seen[n] / 4, 0, 1)[..., None], 3, axis=2))
+        rows.append(np.concatenate(panels, 1))
     picture = (np.concatenate(rows, 0) * 255).round().astype(np.uint8)
     Image.fromarray(picture).resize((picture.shape[1] * 2, picture.shape[0] * 2),
                                     Image.NEAREST).save(path)
