@@ -39,6 +39,10 @@ the same ``image_scores`` as ours.
         [--curve-points 10] [--train-options '--batch-rays 16384']
         [--nerfacto-venv benchmarks/out/nerfacto-venv]
 
+Scores: PSNR and SSIM, and PSNR after each render's affine colour fit to its photo
+(``psnr_cc``, ``metrics.colour_corrected``): the training photos' exposures are learned,
+a held-out photo's are not, and a phone sets them photo by photo.
+
 Writes ``OUT/results.json``, ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
 absolute error x4 | for ours, how many training views see each pixel's surface, black for
 none, white for four or more: ``views_seeing``, whose PSNR by count ``results.json`` holds
@@ -440,14 +444,15 @@ def main() -> None:
                               args.curve_points, tuple(args.train_options),
                               args.pretrain_share)
             render, seen = result.pop("render"), result.pop("seen", None)
-            result.update(image_scores(render, truth), views=len(truth),
+            result.update(image_scores(render, truth, corrected=True), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",
                           train_views=len(data.indices("train")))
             if seen is not None:
                 result["by_views_seeing"] = scores_by_views_seeing(truth, render, seen)
             error_map(truth, render, args.out / f"{name}-{method}.png", seen=seen)
             results.setdefault(name, {})[method] = result
-            print(f"{name} {method}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f} "
+            print(f"{name} {method}: PSNR {result['psnr']:.2f} dB ({result['psnr_cc']:.2f} "
+                  f"colour-corrected), SSIM {result['ssim']:.4f} "
                   f"on {len(truth)} held-out views at {result['size']}; "
                   f"{result['iterations']} iterations in {result['seconds']:.0f} s"
                   + (f", peak {result['peak_gb']:.2f} GB" if result.get("peak_gb") else "")

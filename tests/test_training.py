@@ -1,5 +1,6 @@
 """Training weight NeRFs: the frozen density part, supersampling, bakes, losses, the output
-layer fitted before fine-tuning, learning-rate decay, resume, the config's checks."""
+layer fitted before fine-tuning, learning-rate decay, resume, the config's checks, the
+colour-corrected score."""
 
 from dataclasses import replace
 
@@ -13,7 +14,7 @@ from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
 from nerf_stage.train import losses  # noqa: E402
 from nerf_stage.train import trainer as trainer_module  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
-from nerf_stage.train.metrics import psnr  # noqa: E402
+from nerf_stage.train.metrics import image_scores, psnr  # noqa: E402
 from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
@@ -406,3 +407,12 @@ def test_a_depth_loss_run_trains_where_points_are_seen(cornell, tmp_path):
     assert torch.equal(plain, density(dataset, replace(config, depth_weight=1.0), "none"))
     with_points = replace(dataset, points=points)
     assert not torch.equal(plain, density(with_points, replace(config, depth_weight=1.0), "d"))
+
+
+def test_the_colour_corrected_score_forgives_exposure_not_content():
+    truth = np.random.default_rng(0).random((1, 16, 16, 3))
+    exposed = 0.6 * truth + 0.05  # darker, the same content
+    shuffled = truth.reshape(-1, 3)[np.random.default_rng(1).permutation(256)].reshape(truth.shape)
+    assert image_scores(exposed, truth, corrected=True)["psnr_cc"] > 60
+    assert image_scores(exposed, truth)["psnr"] < 20
+    assert image_scores(shuffled, truth, corrected=True)["psnr_cc"] < 12
