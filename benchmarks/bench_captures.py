@@ -41,7 +41,7 @@ the same ``image_scores`` as ours.
 
 Scores: PSNR and SSIM, and PSNR after each render's affine colour fit to its photo
 (``psnr_cc``, ``metrics.colour_corrected``): the training photos' exposures are learned,
-a held-out photo's are not, and a phone sets them photo by photo.
+a held-out photo's are not, and cameras set them photo by photo.
 
 Writes ``OUT/results.json``, ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
 absolute error x4 | for ours, how many training views see each pixel's surface, black for

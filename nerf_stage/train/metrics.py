@@ -1,6 +1,6 @@
-"""Image metrics: PSNR and SSIM (scikit-image) of images in [0, 1], the edit response, and
-camera pose errors. No torch, no path tracer: importing a metric costs numpy and
-scikit-image only."""
+"""Image metrics: PSNR (plain and colour-corrected) and SSIM (scikit-image) of images in
+[0, 1], the edit response, and camera pose errors. No torch, no path tracer: importing a
+metric costs numpy and scikit-image only."""
 
 from __future__ import annotations
 
