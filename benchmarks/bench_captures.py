@@ -72,7 +72,7 @@ from nerf_stage.data.cameras import project
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.data.points import POINTS_FILE, write_points
 from nerf_stage.train.config import TrainConfig
-from nerf_stage.train.metrics import image_scores
+from nerf_stage.train.metrics import image_scores, psnr_from_mse
 from nerf_stage.train.run import load_run
 
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
@@ -293,8 +293,8 @@ def scores_by_views_seeing(truth: np.ndarray, render: np.ndarray, seen: np.ndarr
     scores = {}
     for name, mask in (("0", seen == 0), ("1", seen == 1), ("2+", seen >= 2)):
         mse = float(error[mask].mean()) if mask.any() else None
-        scores[name] = {"share": float(mask.mean()), "psnr": (
-            float(-10 * np.log10(max(mse, 1e-10))) if mse is not None else None)}
+        scores[name] = {"share": float(mask.mean()),
+                        "psnr": psnr_from_mse(max(mse, 1e-10)) if mse is not None else None}
     return scores
 
 
