@@ -2,8 +2,14 @@
 
 Images are read with Pillow (PNG, JPEG, TIFF, BMP, WebP and whatever else it
 knows); 16-bit RGB(A) PNG and TIFF, which Pillow reduces to 8 bits, are read with
-pypng and tifffile instead. EXIF orientation is applied, greyscale becomes RGB,
-and fully transparent pixels are marked so the palette can leave them out.
+pypng and tifffile instead. EXIF orientation is applied, greyscale and palette images
+become RGB, an embedded colour profile other than sRGB is converted to sRGB (8-bit
+images; littlecms through Pillow), and alpha is kept so that the palette can leave fully
+transparent pixels out and training can composite them.
+
+``load_image`` is the one reader of pixels: every command (``palette-decompose``, ``nerf-stage
+poses`` and ``train``, the studio) sees the same pixels for the same file, and
+``image_size`` gives the size those pixels have, from the header alone.
 """
 
 from __future__ import annotations
@@ -52,11 +58,14 @@ class LoadedImage:
         RGB values; the dtype gives the bit depth.
     opaque : (H, W) bool
         False where the pixel is fully transparent.
+    alpha : (H, W) float32 in [0, 1], or None
+        The file's alpha channel; None for an image without one (opaque).
     """
 
     name: str
     pixels: np.ndarray
     opaque: np.ndarray
+    alpha: np.ndarray | None = None
 
     @property
     def rgb(self) -> np.ndarray:
@@ -145,6 +154,35 @@ def open_image(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS):
         yield im
 
 
+def image_size(path: str | os.PathLike, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[int, int]:
+    """(width, height) of the pixels ``load_image`` gives for ``path`` (EXIF orientation
+    applied), read from the header without decoding.
+
+    Raises
+    ------
+    InputError
+        As ``open_image``.
+    """
+    with open_image(Path(path), max_pixels) as im:
+        swapped = _orientation(im) in (5, 6, 7, 8)
+        return (im.height, im.width) if swapped else (im.width, im.height)
+
+
+def is_turned(path: str | os.PathLike) -> bool:
+    """Whether ``path``'s EXIF orientation makes ``load_image`` turn or mirror its stored
+    pixels (which tools that ignore the tag, COLMAP among them, read as they are stored)."""
+    with open_image(Path(path)) as im:
+        return _orientation(im) in _ORIENT
+
+
+def _orientation(im: Image.Image) -> int:
+    """The EXIF orientation tag of ``im`` (1, upright, when absent or unreadable)."""
+    try:
+        return int(im.getexif().get(0x0112, 1))
+    except (OSError, SyntaxError, ValueError, TypeError):
+        return 1
+
+
 def load_image(path: str | os.PathLike, name: str | None = None,
                max_pixels: int = DEFAULT_MAX_PIXELS) -> LoadedImage:
     """Decode one image file (see the module docstring for what is supported).
@@ -161,26 +199,45 @@ def load_image(path: str | os.PathLike, name: str | None = None,
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)
                 im.load()
-            orientation = im.getexif().get(0x0112, 1)
-            pixels = _read_16bit_rgb(path, im) if _is_16bit_rgb(path, im) else None
-            if pixels is None:
-                pixels = _pil_to_array(im)
+            orientation = _orientation(im)
+            if _is_16bit_rgb(path, im):
+                pixels = _read_16bit_rgb(path, im)
+            else:
+                pixels = _pil_to_array(_in_srgb(im))
     except InputError:
         raise
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise InputError(f"cannot read image {path}: {exc}") from None
-    if pixels.shape[-1] == 4:
-        opaque = pixels[..., 3] > 0
-        pixels = pixels[..., :3]
-    else:
-        opaque = np.ones(pixels.shape[:2], bool)
     if orientation in _ORIENT:
-        pixels, opaque = _ORIENT[orientation](pixels), _ORIENT[orientation](opaque)
+        pixels = _ORIENT[orientation](pixels)
     if pixels.size == 0:
         raise InputError(f"image {path} has no pixels")
-    return LoadedImage(
-        name or path.name, np.ascontiguousarray(pixels), np.ascontiguousarray(opaque)
-    )
+    alpha = None
+    if pixels.shape[-1] == 4:
+        alpha = np.ascontiguousarray(pixels[..., 3] / np.float32(np.iinfo(pixels.dtype).max),
+                                     np.float32)
+        pixels = pixels[..., :3]
+    opaque = np.ones(pixels.shape[:2], bool) if alpha is None else alpha > 0
+    return LoadedImage(name or path.name, np.ascontiguousarray(pixels), opaque, alpha)
+
+
+def _in_srgb(im: Image.Image) -> Image.Image:
+    """``im`` converted from its embedded colour profile to sRGB; as it is when it has none,
+    it is sRGB already, or the profile cannot be parsed (then it is taken as sRGB, as
+    browsers do)."""
+    icc = im.info.get("icc_profile")
+    if not icc or im.mode not in ("RGB", "RGBA"):
+        return im
+    from PIL import ImageCms
+
+    try:
+        profile = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+        if "srgb" in ImageCms.getProfileDescription(profile).lower():
+            return im
+        return ImageCms.profileToProfile(im, profile, ImageCms.createProfile("sRGB"),
+                                         outputMode=im.mode)
+    except (ImageCms.PyCMSError, OSError, ValueError, TypeError):
+        return im
 
 
 def _pil_to_array(im: Image.Image) -> np.ndarray:

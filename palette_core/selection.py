@@ -30,7 +30,7 @@ import numpy as np
 from .basis import Basis, basis_terms, weights_to_rgb
 from .errors import InputError
 from .folders import inside
-from .io import IMAGE_SUFFIXES, open_image
+from .io import IMAGE_SUFFIXES, load_image
 from .stack import video_of
 
 
@@ -166,13 +166,16 @@ def _feathered(m: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def _read_mask(path: Path, size: tuple[int, int], name: str) -> np.ndarray:
-    """(H, W) float64 in [0, 1]: the alpha of a mask that has one, else its grey value."""
-    with open_image(path) as image:
-        if (image.height, image.width) != size:
-            raise InputError(f"mask {path} is {image.width}x{image.height}, image {name} is "
-                             f"{size[1]}x{size[0]}")
-        channel = image.getchannel("A") if "A" in image.getbands() else image.convert("L")
-        return np.asarray(channel, np.float64) / 255.0
+    """(H, W) float64 in [0, 1]: the alpha of a mask that has one, else its grey value
+    (ITU-R 601 luma, as Pillow's ``L``), read as every image is (``io.load_image``)."""
+    image = load_image(path)
+    height, width = image.pixels.shape[:2]
+    if (height, width) != size:
+        raise InputError(f"mask {path} is {width}x{height}, image {name} is "
+                         f"{size[1]}x{size[0]}")
+    if image.alpha is not None:
+        return image.alpha.astype(np.float64)
+    return np.clip(image.rgb @ np.array([0.299, 0.587, 0.114]), 0.0, 1.0)
 
 
 def parse_near(text: str) -> tuple[float, float, float]:

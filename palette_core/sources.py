@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, find_images, load_image, open_image
+from .io import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, find_images, image_size, load_image
 from .stack import MAX_FPS, frame_name
 
 #: The video containers read as sources (anything PyAV opens) and written back by
@@ -85,8 +85,8 @@ def find_sources(inputs: list, max_pixels: int = DEFAULT_MAX_PIXELS) -> list[Sou
 
 def _probe(path: Path, name: str, max_pixels: int) -> Source:
     if not is_video(path):
-        with open_image(path, max_pixels) as im:
-            return Source(str(path), name, 1, im.height, im.width)
+        width, height = image_size(path, max_pixels)
+        return Source(str(path), name, 1, height, width)
     import av
 
     try:

@@ -256,3 +256,44 @@ def test_a_capture_is_not_written_over_nor_among_the_photos(corner, capture, cap
     assert nerf_stage(["poses", str(corner[0]), "-o", str(corner[0] / "capture")]) == 2
     assert "among the inputs" in capsys.readouterr().err
     assert not (corner[0] / "capture").exists()
+
+
+def test_turned_photos_pose_decompose_and_train_as_they_show(corner, tmp_path):
+    """Photos stored a quarter turn off, with EXIF orientation 6 (as phones take them
+    upright): poses register them as they show, and the README's sequence runs."""
+    photos = tmp_path / "turned"
+    photos.mkdir()
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    for path in sorted(corner[0].iterdir()):
+        upright = np.asarray(Image.open(path))
+        Image.fromarray(np.ascontiguousarray(np.rot90(upright, 1))).save(
+            photos / f"{path.stem}.jpg", quality=95, exif=exif)
+    out = tmp_path / "capture"
+    assert nerf_stage(["poses", str(photos), "-o", str(out)]) == 0
+    dataset = load_dataset(out)
+    assert dataset.names[0] == "images/v00.jpg.png"
+    assert dataset.images.shape[2] > dataset.images.shape[1]  # landscape, as they show
+    rotation, centre = pose_errors(dataset.poses, corner[1][[int(n[8:10]) for n in
+                                                             dataset.names]])
+    assert rotation.max() < 5.0 and centre.max() < 0.05  # JPEG's; turned, 90 degrees off
+    stack = tmp_path / "weights.npz"
+    assert decompose.main([str(out / "images"), "-k", "4", "-o", str(stack)]) == 0
+    assert nerf_stage(["train", str(out), "--weights", str(stack), "-o", str(tmp_path / "run"),
+                       *TINY_FLAGS]) == 0
+
+
+def test_a_colmap_model_of_turned_photos_is_refused(capture, tmp_path, capsys):
+    """COLMAP posed the stored pixels; every command here reads them turned."""
+    copy = tmp_path / "model"
+    shutil.copytree(capture, copy)
+    (copy / "transforms.json").unlink()
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    for path in sorted((copy / "images").iterdir()):  # all of them, as a phone's are
+        with Image.open(path) as image:
+            image.load()
+            image.save(path, exif=exif)
+    assert nerf_stage(["poses", str(copy), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "EXIF orientation turns (v00.png, v01.png, v02.png ...)" in err

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from palette_core.errors import InputError, first_line
+from palette_core.io import is_turned
 
 from .cameras import Intrinsics, checked_camera
 from .distortion import Distortion
@@ -115,6 +116,18 @@ def _check_readable(pycolmap, model: Path) -> None:
 def _address_space() -> int:
     with open("/proc/self/statm") as f:
         return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_upright(photos: Path, names: list[str], source: str) -> None:
+    """InputError naming the photos whose EXIF orientation turns them (``io.is_turned``):
+    ``source``'s poses were computed from their stored pixels, every command here reads them
+    turned."""
+    turned = [name for name in names if is_turned(photos / name)]
+    if turned:
+        raise InputError(f"{source} was made from the stored pixels of photos that their EXIF "
+                         f"orientation turns ({', '.join(turned[:3])}"
+                         f"{' ...' if len(turned) > 3 else ''}): pose the photos themselves "
+                         "with nerf-stage poses")
 
 
 def check_camera(camera, source: str) -> None:

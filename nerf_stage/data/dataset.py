@@ -42,11 +42,11 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from palette_core.errors import InputError
-from palette_core.io import open_image
+from palette_core.io import image_size, load_image
 from palette_core.stack import WeightStack
 
 from .cameras import Intrinsics, checked_camera, focal_length
-from .colmap import find_model, model_frames, model_points, read_model
+from .colmap import check_upright, find_model, model_frames, model_points, read_model
 from .distortion import Distortion, undistort, undistorted_camera
 from .points import Points, read_points
 
@@ -413,8 +413,7 @@ def _read_blender(root: Path, frames_outside: bool) -> Frames:
         splits += [split] * len(split_names)
     if not names:
         raise InputError(f"{root}: the transforms files list no frames")
-    with open_image(root / names[0]) as first:
-        width, height = first.size
+    width, height = image_size(root / names[0])
     focal = focal_length(width, angle)
     camera = checked_camera(str(root / "transforms_train.json"), width, height, focal, focal,
                             width / 2, height / 2)
@@ -428,6 +427,7 @@ def _read_colmap(root: Path, frames_outside: bool) -> Frames:
     names, poses, cameras, distortions = model_frames(reconstruction, str(root))
     names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
              for name in names]
+    check_upright(root, names, f"the COLMAP model in {model}")
     return Frames(names, _holdout(len(names)), poses, cameras, distortions,
                   points=model_points(reconstruction))
 
@@ -526,8 +526,9 @@ def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: in
                  lenses: list[Lens] | None) -> np.ndarray:
     """(N, H / n, W / n, 4) float32 RGBA in [0, 1] of the frames, undistorted through their
     ``lenses`` and ``downscale`` n times smaller (``block_mean``; images without alpha are
-    opaque). Each frame is read as 8-bit and made small before the next, so full-size photos
-    never sit in memory together as floats.
+    opaque), read by ``palette_core.io.load_image`` as every command reads them. Each frame is
+    made small before the next is read, so full-size photos never sit in memory together as
+    floats.
 
     Raises
     ------
@@ -536,15 +537,13 @@ def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: in
     """
     frames, wrong = [], []
     for i, name in enumerate(names):
-        with open_image(root / name) as im:
-            try:
-                rgba = np.asarray(im.convert("RGBA"))
-            except (OSError, ValueError) as exc:
-                raise InputError(f"cannot read image {root / name}: {exc}") from None
-        if rgba.shape[:2] != (camera.height, camera.width):
+        image = load_image(root / name)  # the pixels palette-decompose reads
+        if image.pixels.shape[:2] != (camera.height, camera.width):
             wrong.append(name)
         elif not wrong:
-            rgba = rgba.astype(np.float32) / 255.0
+            alpha = np.ones(image.opaque.shape, np.float32) if image.alpha is None else image.alpha
+            rgb = image.pixels / np.float32(np.iinfo(image.pixels.dtype).max)
+            rgba = np.concatenate([rgb, alpha[..., None]], -1)
             if lenses is not None:
                 rgba = lenses[i].undistort(rgba)
             frames.append(block_mean(rgba, downscale, rgba=True))

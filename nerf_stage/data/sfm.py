@@ -37,12 +37,13 @@ from tqdm import tqdm
 
 from palette_core.errors import InputError
 from palette_core.folders import files_in
-from palette_core.io import IMAGE_SUFFIXES, open_image
+from palette_core.io import IMAGE_SUFFIXES, image_size, is_turned, load_image
 from palette_core.outputs import check_apart, check_outdir, publish_folder
 
 from .colmap import (
     MAX_DISTORTION,
     cam_from_world,
+    check_upright,
     distortion,
     find_model,
     import_pycolmap,
@@ -105,8 +106,8 @@ def list_photos(folder: str | os.PathLike) -> list[str]:
         if not name.lower().endswith(IMAGE_SUFFIXES):
             strangers.append(name)
             continue
-        with open_image(folder / name) as image:  # InputError for what is not an image
-            sizes.setdefault(image.size, []).append(name)
+        size = image_size(folder / name)  # as load_image turns it; InputError for a stranger
+        sizes.setdefault(size, []).append(name)
     if strangers:
         raise InputError(f"{folder} holds files that are not photos ({', '.join(strangers[:3])}"
                          f"{' ...' if len(strangers) > 3 else ''}): give a folder of photos only")
@@ -115,6 +116,42 @@ def list_photos(folder: str | os.PathLike) -> list[str]:
         raise InputError(f"{folder} holds photos of different sizes: {listed}; one capture "
                          "needs one size")
     return names
+
+
+def _upright(photos: Path, names: list[str], folder: Path) -> tuple[Path, list[str]]:
+    """``folder`` of the photos as ``load_image`` reads them, for COLMAP, which ignores EXIF
+    orientation: a turned photo is written upright as ``NAME.png`` (lossless), the others
+    linked as they are; and the names there. ``photos`` itself when none is turned."""
+    turned = {name for name in names if is_turned(photos / name)}
+    if not turned:
+        return photos, names
+    folder.mkdir()
+    upright = []
+    for name in names:
+        if name in turned:
+            image = load_image(photos / name)
+            pixels = image.pixels if image.alpha is None else np.concatenate(
+                [image.pixels, (image.alpha[..., None] * np.iinfo(image.pixels.dtype).max)
+                 .round().astype(image.pixels.dtype)], -1)
+            name += ".png"
+            _write_png(pixels, folder / name)
+        else:
+            (folder / name).symlink_to((photos / name).resolve())
+        upright.append(name)
+    return folder, upright
+
+
+def _write_png(pixels: np.ndarray, path: Path) -> None:
+    """(H, W, 3 or 4) uint8 or uint16 pixels as a PNG of their bit depth."""
+    if pixels.dtype == np.uint8:
+        Image.fromarray(pixels).save(path)
+        return
+    import png
+
+    height, width, planes = pixels.shape
+    with open(path, "wb") as file:
+        png.Writer(width, height, bitdepth=16, greyscale=False,
+                   alpha=planes == 4).write(file, pixels.reshape(height, -1))
 
 
 def image_pairs(names: list[str], matcher: str = "auto") -> list[tuple[str, str]]:
@@ -163,10 +200,13 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
         return _posed_capture(pycolmap, load_dataset(source), out, matcher, force, progress)
     photos = source / "images" if model is not None else source
     names = list_photos(photos)
+    if model is not None:
+        check_upright(photos, names, f"the COLMAP model in {model}")
     with tempfile.TemporaryDirectory(prefix="nerf-stage-poses-") as work:
         work, seconds = Path(work), {}
         models = None
         if model is None:
+            photos, names = _upright(photos, names, work / "upright")
             model, models = _structure_from_motion(pycolmap, photos, names, work,
                                                    camera_model, matcher, mapper, progress,
                                                    seconds)
