@@ -47,8 +47,9 @@ from bench_simulate import EDITED
 from nerf_stage.cli import main as nerf_stage
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.edit.evaluation import evaluate
+from nerf_stage.train.checkpoint import CHECKPOINT
 from nerf_stage.train.config import BAKE_FACTOR, TrainConfig
-from nerf_stage.train.run import CHECKPOINT, CONFIG, load_run
+from nerf_stage.train.run import CONFIG, load_run
 from nerf_stage.train.trainer import train
 from palette_core.basis import Basis
 from palette_core.cli.decompose import main as decompose

@@ -92,7 +92,7 @@ def open_target(path: str, splats: bool = True):
     InputError
         If ``path`` is neither.
     """
-    from nerf_stage.train.run import CHECKPOINT
+    from nerf_stage.train.checkpoint import CHECKPOINT
 
     target = Path(path)
     if target.is_dir() and (target / CHECKPOINT).is_file():

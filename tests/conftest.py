@@ -96,3 +96,15 @@ def scene_run(tmp_path_factory):
                  "--finetune-iters", "2", "--batch-rays", "64", "--grid-voxels", str(12**3),
                  "--head-width", "16"]) == 0
     return root / "run"
+
+
+@pytest.fixture(scope="session")
+def splat_scene_run(scene_run):
+    """A tiny splat run of ``scene_run``'s still life."""
+    from nerf_stage.cli import main as nerf
+
+    rundir = scene_run.parent / "splat-run"
+    assert nerf(["train", str(scene_run.parent / "sl"), "-o", str(rundir), "--backbone",
+                 "splats", "--pretrain-iters", "4", "--finetune-iters", "2",
+                 "--splats-initial", "64"]) == 0
+    return rundir

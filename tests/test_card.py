@@ -9,8 +9,9 @@ pytest.importorskip("torch")
 from harmonize.cli import main as harmonize  # noqa: E402
 from nerf_stage.cli import main as nerf_stage  # noqa: E402
 from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
+from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import CONFIG_ENV  # noqa: E402
-from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.train.run import load_run  # noqa: E402
 from palette_core import read_stack  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
 

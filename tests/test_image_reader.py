@@ -18,6 +18,7 @@ from palette_core.stack import read_stack  # noqa: E402
 
 from .hostile import _poses  # noqa: E402
 
+
 def _turned(path, upright: np.ndarray, quality: int | None = None) -> None:
     """Save ``upright`` (H, W, C) stored a quarter turn anticlockwise, with EXIF orientation
     6 (turn clockwise to show), so that a reader honouring the tag gives ``upright``."""

@@ -17,8 +17,9 @@ torch = pytest.importorskip("torch")
 
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.edit.editing import read_render  # noqa: E402
+from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import BAKE_FACTOR  # noqa: E402
-from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.train.run import load_run  # noqa: E402
 
 from .nerf_runs import tiny_config, trained  # noqa: E402
 

@@ -296,4 +296,5 @@ def test_a_colmap_model_of_turned_photos_is_refused(capture, tmp_path, capsys):
             image.save(path, exif=exif)
     assert nerf_stage(["poses", str(copy), "-o", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "EXIF orientation turns (v00.png, v01.png, v02.png ...)" in err
+    assert len(err.splitlines()) == 1
+    assert "EXIF orientation turns (v00.png, v01.png, v02.png ...)" in err

@@ -20,8 +20,9 @@ from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
 from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import PIXELS_PER_SPLAT, Densification  # noqa: E402
+from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
-from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.train.run import load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 

@@ -13,9 +13,10 @@ from nerf_stage.data.cameras import Intrinsics  # noqa: E402
 from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
 from nerf_stage.train import losses  # noqa: E402
 from nerf_stage.train import trainer as trainer_module  # noqa: E402
+from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
 from nerf_stage.train.metrics import image_scores, psnr  # noqa: E402
-from nerf_stage.train.run import CHECKPOINT, load_run  # noqa: E402
+from nerf_stage.train.run import load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 from palette_core.stack import read_stack  # noqa: E402

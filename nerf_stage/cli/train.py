@@ -39,7 +39,7 @@ def add(commands, defaults: TrainConfig) -> None:
 
 
 def run(args) -> int:
-    from ..train.run import CHECKPOINT
+    from ..train.checkpoint import CHECKPOINT
     from ..train.trainer import peak_memory, train_capture
 
     config = config_from_args(TrainConfig, args)

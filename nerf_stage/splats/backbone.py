@@ -40,7 +40,7 @@ from tqdm import tqdm
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError, first_line
 
-from ..backbones import SplatConfig
+from ..backbones import MAX_SPLATS, SplatConfig
 from ..data.cameras import Intrinsics, project
 from ..data.dataset import Dataset
 from ..data.points import Points
@@ -50,18 +50,11 @@ from ..render.march import box_intersection
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, visual_hull
 from ..train.appearance import Appearance, exposure_free_weights
+from ..train.checkpoint import CHECKPOINT, write_checkpoint
 from ..train.config import Strategy, TrainConfig
 from ..train.losses import recorded_rgb_loss, ssim_loss, weight_loss
 from ..train.metrics import psnr_from_mse
-from ..train.run import (
-    CHECKPOINT,
-    CONFIG,
-    RunBase,
-    RunRecord,
-    default_device,
-    run_fields,
-    write_checkpoint,
-)
+from ..train.run import CONFIG, RunBase, RunRecord, default_device, run_fields
 from ..train.trainer import (
     choose_scene_box,
     load_optimisers,
@@ -782,8 +775,7 @@ def _from_state(state: dict, path: str, device) -> SplatRun:
         output, tensors = state["output"], dict(state["field"])
         kind = RGB if output["kind"] == RGB else Basis.parse(output["kind"])
         degree = int(output["degree"])
-        _check_tensors(tensors, kind, degree, channels, path)
-        model = SplatModel(tensors, kind, degree)
+        model = SplatModel(_check_tensors(tensors, kind, degree, channels, path), kind, degree)
         if kind != RGB:
             for name in GEOMETRY:
                 getattr(model, name).requires_grad_(False)
@@ -793,25 +785,32 @@ def _from_state(state: dict, path: str, device) -> SplatRun:
             run.appearance.load_state_dict(state["appearance"])
             run.appearance.to(device)
         return run
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
         raise InputError(f"checkpoint {path} is malformed: {first_line(exc)}") from None
 
 
-def _check_tensors(tensors: dict, kind: str, degree: int, channels: int, path: str) -> None:
-    """InputError unless the checkpoint's splat tensors have the shapes of one model and
-    finite values (a checkpoint from elsewhere is read as data only)."""
+def _check_tensors(tensors: dict, kind: str, degree: int, channels: int, path: str) -> dict:
+    """The checkpoint's splat tensors as float32, checked: the names and shapes of one
+    model of at most ``MAX_SPLATS`` splats, floating-point and finite values and rotations
+    that are quaternions (a checkpoint from elsewhere is read as data only,
+    ``checkpoint.read_checkpoint``); InputError otherwise."""
     if not 0 <= degree <= 3:
         raise InputError(f"{path}: spherical-harmonics degree must be in [0, 3], got {degree}")
-    s = len(tensors.get("means", ()))
+    means = tensors.get("means")
+    s = len(means) if isinstance(means, torch.Tensor) and means.ndim else 0
+    if not 0 < s <= MAX_SPLATS:
+        raise InputError(f"{path}: the splats' means must be a tensor of 1 to {MAX_SPLATS} rows")
     b = sh_terms(degree)
     shapes = {"means": (s, 3), "scales": (s, 3), "quats": (s, 4), "opacities": (s,)}
     shapes.update({"colours": (s, 3), "colours_rest": (s, b - 1, 3)} if kind == RGB
                   else {"weights": (s, channels), "residual": (s, b - 1, channels)})
-    if (set(tensors) != set(shapes) or s == 0
-            or any(tuple(tensors[k].shape) != v for k, v in shapes.items())):
+    if set(tensors) != set(shapes) or any(tuple(tensors[k].shape) != v for k, v in shapes.items()):
         raise InputError(f"{path}: the splats' tensors have the wrong names or shapes")
+    if not all(t.is_floating_point() for t in tensors.values()):
+        raise InputError(f"{path}: the splats' tensors must hold floating-point numbers")
+    tensors = {name: t.float() for name, t in tensors.items()}
     if not all(torch.isfinite(t).all() for t in tensors.values()):
         raise InputError(f"{path}: the splats hold NaN or infinity")
     if (tensors["quats"].norm(dim=1) < 1e-6).any():
         raise InputError(f"{path}: a splat rotation is not a quaternion")
-
+    return tensors

@@ -1,8 +1,7 @@
 """The run folder of a weight NeRF: its config, its checkpoint, and the trained run itself.
 
-A run folder holds ``config.json`` (the ``TrainConfig``) and ``checkpoint.pt``
-(docs/formats.md): tensors and plain values only, loaded with
-``torch.load(weights_only=True)``, so a checkpoint from elsewhere cannot run code.
+A run folder holds ``config.json`` (the ``TrainConfig``) and ``checkpoint.pt``, written and
+read by ``checkpoint`` (docs/formats.md).
 """
 
 from __future__ import annotations
@@ -17,7 +16,6 @@ from tqdm import tqdm
 
 from palette_core.basis import Basis, basis_terms, check_basis, n_terms
 from palette_core.errors import InputError, first_line
-from palette_core.outputs import atomic_outputs
 
 from ..backbones import BACKBONES
 from ..data.cameras import Intrinsics
@@ -28,15 +26,13 @@ from ..render.occupancy import OccupancyGrid
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays
 from .appearance import Appearance
+from .checkpoint import CHECKPOINT, read_checkpoint, write_checkpoint
 from .config import BAKE_FACTOR, TrainConfig
 
-CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
 #: Rays per forward pass when rendering whole views, by device type: on the CPU larger
 #: chunks run slower (docs/real_photos.md); a GPU marches a half-size photo's rays at once.
 RENDER_CHUNK = {"cpu": 1 << 15, "cuda": 1 << 19}
-_CHECKPOINT_KEYS = ("iteration", "config", "field", "output", "optimisers", "generator",
-                    "box", "intrinsics", "palette", "basis", "order", "meta", "log")
 
 
 def default_device() -> torch.device:
@@ -273,54 +269,6 @@ def save_checkpoint(run: Run, path: Path, optimisers, generator: torch.Generator
                      [o.state_dict() for o in optimisers], generator, extra)
 
 
-def write_checkpoint(run: RunBase, path: Path, model: dict, output: dict, optimisers: list,
-                     generator: torch.Generator, extra: dict) -> None:
-    """Write a run's checkpoint atomically: its ``model``'s tensors (as ``field``), what it
-    outputs, its optimisers' states and random state, what every run records, and the
-    backbone's ``extra`` keys (docs/formats.md)."""
-    record = run.record
-    state = {
-        "iteration": record.iteration,
-        "config": run.config.to_dict(),
-        "field": model,
-        "output": output,
-        "optimisers": optimisers,
-        "generator": generator.get_state(),
-        "box": run.box.to_dict(),
-        "intrinsics": run.intrinsics.__dict__,
-        "palette": run.palette.tolist(),
-        "basis": str(run.basis),
-        "order": run.order,
-        "meta": {"dataset": record.dataset, "weights": record.weights,
-                 "channels": record.channels, "stack_meta": record.stack_meta,
-                 "frames_outside": record.frames_outside, "downscale": record.downscale},
-        "log": record.log,
-        **extra,
-    }
-    with atomic_outputs(force=True) as stage:  # the run's own checkpoint
-        torch.save(state, stage(path))
-
-
-def read_checkpoint(path: Path) -> dict:
-    """The checkpoint's state, loaded without running code (``weights_only=True``).
-
-    Raises
-    ------
-    InputError
-        If there is no checkpoint, it cannot be read, or a key is missing.
-    """
-    if not path.is_file():
-        raise InputError(f"{path.parent} holds no checkpoint ({CHECKPOINT}): train it first")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for a damaged or unsafe file
-        raise InputError(f"cannot read checkpoint {path}: {first_line(exc)}") from None
-    missing = [key for key in _CHECKPOINT_KEYS if not isinstance(state, dict) or key not in state]
-    if missing:
-        raise InputError(f"checkpoint {path} lacks {', '.join(missing)}")
-    return state
-
-
 def run_record(state: dict) -> RunRecord:
     """The ``RunRecord`` of a checkpoint's state."""
     meta = state["meta"]
@@ -401,5 +349,5 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
         return run
     except InputError:
         raise
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
         raise InputError(f"checkpoint {path} is malformed: {first_line(exc)}") from None

@@ -41,19 +41,18 @@ from ..render.march import march_rays
 from ..render.occupancy import OccupancyGrid
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 from .appearance import Appearance, exposure_free_weights
+from .checkpoint import CHECKPOINT, read_checkpoint
 from .config import Space, Strategy, TrainConfig
 from .losses import depth_loss, distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse
 from .point_depth import point_targets
 from .run import (
-    CHECKPOINT,
     CONFIG,
     Run,
     RunBase,
     RunRecord,
     check_rundir,
     default_device,
-    read_checkpoint,
     restore,
     save_checkpoint,
 )
