@@ -8,7 +8,7 @@ its buttons.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 
 class InputError(ValueError):
@@ -43,12 +43,14 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def cli_line(exc: InputError) -> str:
-    """``exc`` as a command line says it: its setting and its fixes as flags."""
+def cli_line(exc: InputError, flags: Collection[str] | None = None) -> str:
+    """``exc`` as a command line says it: its setting and its fixes as flags (only those
+    among ``flags``, the command's, when given)."""
     text = str(exc)
     if getattr(exc, "argument", None):
         text = f"{flag(exc.argument)}: {text}"
-    fixes = getattr(exc, "fixes", ())
+    fixes = [(name, what) for name, what in getattr(exc, "fixes", ())
+             if flags is None or flag(name) in flags]
     if fixes:
         text += " (use " + " or ".join(f"{flag(name)} {what}" for name, what in fixes) + ")"
     return text

@@ -7,7 +7,7 @@ import sys
 import threading
 import webbrowser
 
-from palette_core.cli import ArgumentParser, run_cli
+from palette_core.cli import ArgumentParser, run_cli, show_warnings
 
 PROG = "palette-studio"
 
@@ -38,6 +38,7 @@ def _run(args) -> int:
     studio = Studio(open_target(args.target, splats=not args.no_splats), args.host, args.port)
     print(studio.url, flush=True)
     print(f"editing {args.target} ({studio.target.mode}); Ctrl+C to stop", file=sys.stderr)
+    show_warnings()  # started well: what was held back in case of a refusal
     if not args.no_browser:
         webbrowser.open(studio.url)
     try:

@@ -78,6 +78,14 @@ def read_model(model: str | os.PathLike):
         raise InputError(f"the COLMAP model in {model} registers no image")
     for camera in reconstruction.cameras.values():
         check_camera(camera, f"the COLMAP model in {model}")
+    for image in reconstruction.images.values():
+        if image.has_pose and not np.isfinite(image.cam_from_world().matrix()).all():
+            raise InputError(f"the COLMAP model in {model}: the pose of image {image.image_id} "
+                             "holds NaN or infinity")
+    xyz = np.array([p.xyz for p in reconstruction.points3D.values()], np.float64)
+    if not np.isfinite(xyz).all():
+        raise InputError(f"the COLMAP model in {model}: {int((~np.isfinite(xyz)).any(-1).sum())} "
+                         "of its 3D points hold NaN or infinity")
     try:
         [image.name for image in reconstruction.images.values()]
     except UnicodeDecodeError:
@@ -135,7 +143,7 @@ def check_camera(camera, source: str) -> None:
     camera (``cameras.Intrinsics``), naming ``source``."""
     where = f"{source}: camera {camera.camera_id}"
     if not np.isfinite(np.asarray(camera.params, np.float64)).all():
-        raise InputError(f"{where}: its parameters hold NaN or infinity: {camera.params}")
+        raise InputError(f"{where}: its parameters hold NaN or infinity")
     checked_camera(where, camera.width, camera.height, float(camera.focal_length_x),
                    float(camera.focal_length_y), float(camera.principal_point_x),
                    float(camera.principal_point_y))

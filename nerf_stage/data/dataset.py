@@ -477,7 +477,7 @@ def _nerfstudio_lens(fields: dict, where) -> Distortion:
     """The distortion of a nerfstudio camera (``camera_model``, ``k1``-``k4``, ``p1``,
     ``p2``; OPENCV when no model is named, as nerfstudio reads it)."""
     name = fields.get("camera_model", "OPENCV")
-    if name not in NERFSTUDIO_MODELS:
+    if not isinstance(name, str) or name not in NERFSTUDIO_MODELS:
         raise InputError(f"{where}: camera_model {name!r} is not supported (read: "
                          f"{', '.join(NERFSTUDIO_MODELS)}); undistort the photos first")
     coefficients = {key: fields.get(key, 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}

@@ -40,6 +40,8 @@ MODELS = ("opencv", "fisheye")
 MIN_SHIFT = 0.05
 #: The focal scales searched for the undistorted camera.
 SCALE_RANGE = (1 / 16, 16.0)
+#: Radii and grid cells on which a lens is checked to be one to one (``check_invertible``).
+FOLD_SAMPLES, FOLD_GRID = 4096, 64
 
 
 @dataclass(frozen=True)
@@ -147,7 +149,34 @@ def undistorted_camera(camera: Intrinsics, distortion: Distortion) -> Intrinsics
     for _ in range(40):  # bisection on the log of the scale
         middle = (low + high) / 2
         low, high = (low, middle) if inside(middle) else (middle, high)
-    return _scaled(camera, math.exp(high))
+    target = _scaled(camera, math.exp(high))
+    check_invertible(camera, distortion, target)
+    return target
+
+
+def check_invertible(camera: Intrinsics, distortion: Distortion, target: Intrinsics) -> None:
+    """InputError unless the lens maps ``target``'s image into ``camera``'s one to one: its
+    radial profile rises over every radius the image reaches (``FOLD_SAMPLES`` of them), and
+    the whole map (tangential terms too) keeps its orientation on a ``FOLD_GRID`` grid. A
+    lens that folds over itself (``k1 = -10``) would give some photo pixels twice."""
+    corners = np.array([[0.0, 0.0], [target.width, 0.0], [0.0, target.height],
+                        [target.width, target.height]])
+    reach = float(np.hypot((corners[:, 0] - target.cx) / target.fx,
+                           (corners[:, 1] - target.cy) / target.fy).max())
+    r = np.linspace(0.0, reach, FOLD_SAMPLES)
+    with np.errstate(all="ignore"):
+        radial, _ = distortion.distort(r, np.zeros_like(r))
+        v, u = np.mgrid[0:FOLD_GRID + 1, 0:FOLD_GRID + 1] / FOLD_GRID
+        u, v = u * target.width, v * target.height
+        h = 0.25
+        du = [np.stack(sources(camera, distortion, target, u + s, v)) for s in (h, -h)]
+        dv = [np.stack(sources(camera, distortion, target, u, v + s)) for s in (h, -h)]
+        (a, c), (b, d) = du[0] - du[1], dv[0] - dv[1]
+        orientation = a * d - b * c
+    if not (np.all(np.diff(radial) > 0) and np.all(orientation > 0)):
+        raise InputError(f"a {distortion.model} lens with k {distortion.k}, p {distortion.p} "
+                         f"folds over itself within a {camera.width}x{camera.height} image "
+                         "(its distortion is not one to one there): it cannot be undistorted")
 
 
 def undistort(image: np.ndarray, camera: Intrinsics, distortion: Distortion,

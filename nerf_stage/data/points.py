@@ -35,6 +35,16 @@ class Points:
     positions: np.ndarray
     colours: np.ndarray
 
+    def __post_init__(self):
+        """InputError unless the shapes agree and every position and colour is finite: no
+        reader hands on, and ``write_points`` never writes, what ``read_points`` refuses."""
+        if (self.positions.ndim != 2 or self.positions.shape[1:] != (3,)
+                or self.colours.shape != self.positions.shape):
+            raise InputError(f"points need (P, 3) positions and colours, got "
+                             f"{self.positions.shape} and {self.colours.shape}")
+        if not (np.isfinite(self.positions).all() and np.isfinite(self.colours).all()):
+            raise InputError("point positions and colours must be finite")
+
     def __len__(self) -> int:
         return len(self.positions)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextvars
 import dataclasses
 import enum
 import inspect
@@ -15,6 +16,7 @@ import sys
 import textwrap
 import threading
 import typing
+import warnings
 from collections.abc import Callable
 from typing import NoReturn
 
@@ -23,10 +25,16 @@ from ..registry import method_options
 
 
 class ArgumentParser(argparse.ArgumentParser):
-    """argparse that raises ``InputError`` instead of printing usage and exiting."""
+    """argparse that raises ``InputError`` instead of printing usage and exiting, and that
+    tells ``run_cli`` the flags of the (sub)command parsed, so that an error's hints name
+    only those."""
 
     def error(self, message: str):
         raise InputError(message)
+
+    def parse_known_args(self, args=None, namespace=None):
+        _FLAGS.set(frozenset(self._option_string_actions))  # a subcommand's come last
+        return super().parse_known_args(args, namespace)
 
 
 class Terminated(BaseException):
@@ -37,26 +45,37 @@ class Terminated(BaseException):
         self.signum = signum
 
 
+#: The signals that end a command; the first unwinds it, any later one is ignored, so that
+#: the clean-up it started is never interrupted.
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def _terminate(signum, frame):
-    raise Terminated(signum)
+    for sig in SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)
 
 
 def run_cli(prog: str, body: Callable[[], int]) -> int:
     """Run a CLI body; bad input and failed reads or writes (a full disk, say) become one
-    line on stderr and exit code 2. SIGINT, SIGTERM and SIGHUP unwind the body, so that
-    staged outputs are removed, and exit with 128 + the signal's number."""
+    line on stderr and exit code 2, naming only flags that the command has
+    (``ArgumentParser``), with no library warning before it: warnings raised while the body
+    runs are shown when it returns or by ``show_warnings``. SIGINT, SIGTERM and SIGHUP
+    unwind the body, so that staged outputs are removed, and exit with 128 + the signal's
+    number, whenever they arrive."""
     previous = {}
-    if threading.current_thread() is threading.main_thread():
-        previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
-        return body()
-    except InputError as exc:
-        print(f"{prog}: error: {cli_line(exc)}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        where = f" ({exc.filename})" if exc.filename else ""
-        print(f"{prog}: error: {exc.strerror or exc}{where}", file=sys.stderr)
-        return 2
+        if threading.current_thread() is threading.main_thread():
+            previous = {sig: signal.signal(sig, _terminate) for sig in SIGNALS}
+        with warnings.catch_warnings(record=True) as caught:
+            _WARNINGS.append(caught)
+            try:
+                code = _reported(prog, body)
+            finally:
+                _WARNINGS.remove(caught)
+        if code != 2:
+            _show(caught)
+        return code
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 128 + signal.SIGINT
@@ -64,8 +83,57 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
         print(f"{prog}: stopped by {signal.Signals(exc.signum).name}", file=sys.stderr)
         return 128 + exc.signum
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        if all(signal.getsignal(sig) is not signal.SIG_IGN for sig in previous):
+            for sig, handler in previous.items():  # no signal came: as it was
+                signal.signal(sig, handler)
+
+
+def _reported(prog: str, body: Callable[[], int]) -> int:
+    """``body()``, with bad input and failed reads or writes said in one line (exit code 2)."""
+    flags = _FLAGS.set(frozenset())
+    try:
+        return body()
+    except InputError as exc:
+        print(f"{prog}: error: {one_line(cli_line(exc, _FLAGS.get() or None))}",
+              file=sys.stderr)
+        return 2
+    except OSError as exc:
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"{prog}: error: {one_line(f'{exc.strerror or exc}{where}')}", file=sys.stderr)
+        return 2
+    finally:
+        _FLAGS.reset(flags)
+
+
+#: Longest error message shown, in characters: a value from a hostile file is cut.
+MAX_MESSAGE = 1000
+#: The flags of the (sub)command being parsed (``ArgumentParser.parse_known_args``).
+_FLAGS: contextvars.ContextVar[frozenset] = contextvars.ContextVar("flags", default=frozenset())
+#: The warnings held back by the commands running (``run_cli``), innermost last.
+_WARNINGS: list[list] = []
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line of at most ``MAX_MESSAGE`` characters (a numpy array's repr or a
+    file's value folded and cut)."""
+    text = " ".join(text.split())
+    return text if len(text) <= MAX_MESSAGE else text[:MAX_MESSAGE - 3] + "..."
+
+
+def show_warnings() -> None:
+    """Show the warnings the running command has held back so far (``run_cli``): for a
+    command that goes on once it has started well (the studio)."""
+    if _WARNINGS:
+        _show(_WARNINGS[-1])
+
+
+def _show(caught: list) -> None:
+    """Raise the held-back warnings again, through the filters in force outside."""
+    held = list(caught)
+    caught.clear()
+    for message in held:
+        warnings.warn_explicit(message.message, message.category, message.filename,
+                               message.lineno, source=message.source)
 
 
 def exit_without_teardown(code: int) -> NoReturn:
