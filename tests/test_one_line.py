@@ -112,11 +112,11 @@ def test_warnings_before_a_refusal_stay_off_stderr_and_show_on_success(capsys):
     import warnings
 
     def refused():
-        warnings.warn("a library's remark", UserWarning)
+        warnings.warn("a library's remark", UserWarning, stacklevel=1)
         raise InputError("bad input")
 
     def fine():
-        warnings.warn("a library's remark", UserWarning)
+        warnings.warn("a library's remark", UserWarning, stacklevel=1)
         return 0
 
     assert run_cli("cmd", refused) == 2
