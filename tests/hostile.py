@@ -169,6 +169,24 @@ def nerfstudio_capture(folder: Path, rng, lens: dict | None = None, size=(8, 6))
     return folder
 
 
+def turned_capture(folder: Path, rng) -> Path:
+    """A nerfstudio capture of three 8 x 6 JPEGs stored a quarter turn off with EXIF
+    orientation 6, as phones take them upright."""
+    (folder / "images").mkdir(parents=True)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    names = []
+    for i in range(3):
+        names.append(f"images/f{i}.jpg")
+        stored = rng.integers(0, 256, (8, 6, 3), dtype=np.uint8)
+        Image.fromarray(stored).save(folder / names[-1], quality=95, exif=exif)
+    frames = [{"file_path": name, "transform_matrix": pose.tolist()}
+              for name, pose in zip(names, _poses(3))]
+    (folder / "transforms.json").write_text(json.dumps(
+        {"w": 8, "h": 6, "fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "frames": frames}))
+    return folder
+
+
 def blender_capture(folder: Path, rng) -> Path:
     names = write_photos(folder / "train", rng)
     frames = [{"file_path": f"train/{name[:-4]}", "transform_matrix": pose.tolist()}
@@ -179,16 +197,17 @@ def blender_capture(folder: Path, rng) -> Path:
 
 
 def colmap_capture(folder: Path, rng, binary: bool, camera: str = "SIMPLE_RADIAL 8 6 8.0 4.0 "
-                   "3.0 0.0", size=(8, 6)) -> Path:
+                   "3.0 0.0", size=(8, 6), points: str = "") -> Path:
     """A COLMAP capture (text or ``binary`` model) of three random photos of ``size`` taken
-    by ``camera`` (a line of COLMAP's cameras.txt after the camera id)."""
+    by ``camera`` (a line of COLMAP's cameras.txt after the camera id), with ``points``
+    (lines of COLMAP's points3D.txt)."""
     names = write_photos(folder / "images", rng, size=size)
     model = folder / "sparse" / "0"
     model.mkdir(parents=True)
     (model / "cameras.txt").write_text(f"1 {camera}\n")
     (model / "images.txt").write_text("".join(
         f"{i + 1} 1 0 0 0 {-0.3 * i} 0 2 1 {name}\n\n" for i, name in enumerate(names)))
-    (model / "points3D.txt").write_text("")
+    (model / "points3D.txt").write_text(points)
     if binary:
         import pycolmap
 

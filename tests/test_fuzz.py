@@ -4,6 +4,10 @@ Valid small files of each kind are mutated (truncated, bytes flipped or inserted
 headers and zip directories that lie, dtypes swapped, JSON values replaced by huge, NaN,
 negative, deeply nested or wrongly typed ones, files replaced by links out of their folder)
 and read in a child process whose address space may grow by at most ``hostile.MEMORY_CAP``.
+Checkpoints get their tensors' dtypes, types, counts and shapes changed; binary COLMAP
+models and checkpoints get doubles set to NaN, infinity or 10^300; a splat run is read and
+exported to PLY and SPZ (the writers' round trips under hostile input); photos turned by
+their EXIF orientation go through training's and the palette's readers.
 The contract: the read succeeds, or it ends in one line on stderr and exit code 2; never a
 traceback, never an allocation beyond the cap, nothing written outside the output folder.
 ``make test`` runs a few hundred examples; ``pytest -m slow tests/test_fuzz.py`` a long run.
@@ -14,6 +18,7 @@ from __future__ import annotations
 import io
 import json
 import shutil
+import struct
 import zipfile
 from pathlib import Path
 
@@ -40,6 +45,7 @@ from .hostile import (
     small_bake,
     small_render,
     small_stack,
+    turned_capture,
     write_photos,
     zip_bytes,
 )
@@ -90,15 +96,36 @@ def read_run(folder: Path) -> None:
     load_run(folder / "run")
 
 
+def export_run(folder: Path) -> None:
+    """A splat run read and exported as each format (``nerf-stage export``, without the bake
+    it keeps in its folder)."""
+    from nerf_stage.splats import export_splats
+
+    splats = load_run(folder / "run").splats({})
+    for suffix in (".ply", ".spz"):
+        export_splats(splats, folder / "out" / f"s{suffix}")
+
+
+def read_turned_capture(folder: Path) -> None:
+    """Training's reader and the palette's on photos turned by their EXIF orientation."""
+    from nerf_stage.data.dataset import join_weights
+    from palette_core.decompose import decompose
+
+    dataset = load_dataset(folder)
+    join_weights(dataset, decompose([folder / "images"], k=4).stack)
+
+
 READERS = {"npz-stack": read_npz_stack, "zarr-stack": read_zarr_stack, "bake": read_bake,
            "render": read_weight_render, "edits": read_edit_file, "regions": read_region_file,
            "palette": read_palette_file, "nerfstudio": load_dataset, "blender": load_dataset,
-           "colmap-text": load_dataset, "colmap-binary": load_dataset, "run": read_run}
+           "colmap-text": load_dataset, "colmap-binary": load_dataset, "run": read_run,
+           "colmap-points": load_dataset, "splat-run": export_run,
+           "turned": read_turned_capture}
 KINDS = list(READERS)
 
 
 @pytest.fixture(scope="module")
-def originals(tmp_path_factory, scene_run):
+def originals(tmp_path_factory, scene_run, splat_scene_run):
     """One folder per kind of file we read (``READERS``), each holding a valid small one."""
     root = tmp_path_factory.mktemp("originals")
     rng = np.random.default_rng(7)
@@ -129,6 +156,11 @@ def originals(tmp_path_factory, scene_run):
         "colmap-text": lambda f: colmap_capture(f, rng, binary=False),
         "colmap-binary": lambda f: colmap_capture(f, rng, binary=True),
         "run": lambda f: shutil.copytree(scene_run, f / "run"),
+        "colmap-points": lambda f: colmap_capture(f, rng, binary=True, points="".join(
+            f"{i + 1} {x:.3f} {y:.3f} {z:.3f} 200 100 50 0.5\n"
+            for i, (x, y, z) in enumerate(rng.uniform(-1, 1, (4, 3))))),
+        "splat-run": lambda f: shutil.copytree(splat_scene_run, f / "run"),
+        "turned": lambda f: turned_capture(f, rng),
     }
     for kind, make in makers.items():
         (root / kind).mkdir()
@@ -145,6 +177,10 @@ HOSTILE_VALUES = [10**12, -1, 0, 1e308, float("nan"), float("inf"), "x" * 300, N
                   [], NESTED,
                   {"shape": "box"}, "../../../etc/hostname", "/etc/hostname"]
 DTYPES = ["<f8", "<f2", ">i8", "<u1", "|b1", "<U7", "|V8", "|O", "<c16", "<M8[s]"]
+#: What a checkpoint's tensor may become: another dtype, a list, a view repeating one row
+#: 10^9 times, rows dropped or added, another shape, a plain number.
+TENSOR_CHANGES = ["half", "double", "bfloat16", "int64", "bool", "complex", "list", "repeat",
+                  "drop-rows", "add-rows", "flatten", "scalar", "number", "nan", "none"]
 
 MUTATION = st.one_of(
     st.tuples(st.just("truncate"), st.floats(0, 1)),
@@ -156,6 +192,9 @@ MUTATION = st.one_of(
     st.tuples(st.just("dtype"), st.integers(0, 100), st.sampled_from(DTYPES)),
     st.tuples(st.just("directory"), st.integers(0, 100), st.sampled_from([0, 10**12, 2**63])),
     st.tuples(st.just("link"), st.integers(0, 10**6)),
+    st.tuples(st.just("tensor"), st.integers(0, 100), st.sampled_from(TENSOR_CHANGES)),
+    st.tuples(st.just("double"), st.floats(0, 1), st.sampled_from(
+        [float("nan"), float("inf"), -float("inf"), 1e300])),
 )
 
 
@@ -172,7 +211,13 @@ def mutate(folder: Path, secret: Path, which: int, mutation: tuple) -> None:
         return
     data = path.read_bytes()
     try:
-        if kind == "json":
+        if kind == "tensor":
+            _tensor_changed(path, *args)
+            return
+        if kind == "double":
+            at = int(args[0] * max(len(data) - 8, 0)) // 8 * 8
+            data = data[:at] + struct.pack("<d", args[1]) + data[at + 8:]
+        elif kind == "json":
             data = json.dumps(_replaced(json.loads(data), *args)).encode()
         elif kind in ("shape", "dtype", "directory"):
             data = _npz_lie(data, kind, *args)
@@ -181,6 +226,29 @@ def mutate(folder: Path, secret: Path, which: int, mutation: tuple) -> None:
     except Exception:  # noqa: BLE001 - not JSON, not a sound NPZ: change bytes
         data = _bytes_changed(data, "insert", 0.5, str(args[-1]).encode())
     path.write_bytes(data)
+
+
+def _tensor_changed(path: Path, index: int, change: str) -> None:
+    """The checkpoint at ``path`` with tensor ``index`` of its ``field`` (modulo their count)
+    changed by ``change`` (``TENSOR_CHANGES``); ValueError for a file that is no checkpoint."""
+    if path.suffix != ".pt":
+        raise ValueError("not a checkpoint")
+    state = torch.load(path, weights_only=True)
+    field = state["field"]
+    name = sorted(field)[index % len(field)]
+    t = field[name]
+    field[name] = {
+        "half": lambda: t.half(), "double": lambda: t.double(), "bfloat16": lambda: t.bfloat16(),
+        "int64": lambda: t.long(), "bool": lambda: t.bool(),
+        "complex": lambda: t.to(torch.complex64), "list": lambda: t.tolist(),
+        "repeat": lambda: t.reshape(-1)[:1].expand(10**9) if t.ndim < 2 else
+        t[:1].expand(10**9, *t.shape[1:]),
+        "drop-rows": lambda: t[: len(t) // 2] if t.ndim else t,
+        "add-rows": lambda: torch.cat([t, t]) if t.ndim else t,
+        "flatten": lambda: t.reshape(-1), "scalar": lambda: t.reshape(-1)[0].clone(),
+        "number": lambda: 1.0, "nan": lambda: t.float().fill_(float("nan")), "none": lambda: None,
+    }[change]()
+    torch.save(state, path)
 
 
 def _bytes_changed(data: bytes, kind: str, where: float, arg=None) -> bytes:
@@ -289,3 +357,13 @@ def test_mutated_files_meet_the_contract(originals, tmp_path_factory, kind, muta
 @given(mutations=MUTATIONS)
 def test_mutated_files_meet_the_contract_long(originals, tmp_path_factory, kind, mutations):
     meets_contract(originals, kind, tmp_path_factory, mutations)
+
+
+@pytest.mark.parametrize("change", TENSOR_CHANGES)
+def test_every_change_of_a_checkpoint_tensor_meets_the_contract(originals, tmp_path_factory,
+                                                                change):
+    files = sorted(p for p in (originals / "splat-run").rglob("*") if p.is_file())
+    checkpoint = next(i for i, p in enumerate(files) if p.suffix == ".pt")
+    for index in (0, 3):  # the first tensor (means) and another
+        meets_contract(originals, "splat-run", tmp_path_factory,
+                       [(checkpoint, ("tensor", index, change))])
