@@ -8,6 +8,7 @@ import signal
 import struct
 import subprocess
 import sys
+import time
 import zlib
 
 import numpy as np
@@ -215,3 +216,33 @@ def test_a_transforms_file_of_every_json_type_in_every_field_is_one_line(tmp_pat
             err = capsys.readouterr().err
             assert code == 0 or (code == 2 and len(err.strip().splitlines()) == 1), \
                 (field, value, err)
+
+
+WAITING = """
+import sys, time
+from palette_core.cli import run_cli
+
+def body():
+    try:
+        print("ready", flush=True)
+        time.sleep(30)
+    finally:
+        time.sleep(0.002)  # a short clean-up
+    return 0
+
+sys.exit(run_cli("cmd", body))
+"""
+
+
+def test_a_second_signal_at_any_moment_leaves_the_first_to_end_the_command():
+    """SIGTERM twice, from 0 to 5 ms apart: every run ends through the first one (exit
+    143, one line), never killed by the second mid-way."""
+    for trial in range(12):
+        child = subprocess.Popen([sys.executable, "-c", WAITING], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True)
+        assert child.stdout.readline() == "ready\n"
+        child.send_signal(signal.SIGTERM)
+        time.sleep(trial * 0.0004)
+        child.send_signal(signal.SIGTERM)
+        err = child.communicate(timeout=60)[1]
+        assert child.returncode == 143 and err.strip() == "cmd: stopped by SIGTERM", (trial, err)
