@@ -14,10 +14,10 @@ from nerf_stage.backbones import SplatConfig  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.fields.base import ACTIVATIONS, RGB  # noqa: E402
-from nerf_stage.splats import backbone, rasterise, read_splats  # noqa: E402
-from nerf_stage.splats.backbone import GEOMETRY, SplatModel  # noqa: E402
+from nerf_stage.splats import backbone, footprints, rasterise, read_splats, start  # noqa: E402
 from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
+from nerf_stage.splats.run import GEOMETRY, SplatModel  # noqa: E402
 from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import PIXELS_PER_SPLAT, Densification  # noqa: E402
 from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
@@ -368,13 +368,13 @@ def test_a_splat_run_evaluates_renders_bakes_and_exports(splat_run, tmp_path, ca
     assert (tmp_path / "s.ply").stat().st_size > 0
 
 
-@pytest.mark.parametrize("scene, footprint_bytes", [("cornell", backbone.FOOTPRINT_BYTES),
+@pytest.mark.parametrize("scene, footprint_bytes", [("cornell", footprints.FOOTPRINT_BYTES),
                                                     ("still_life", 0)])
 def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, request,
                                               monkeypatch, capsys):
     """Transport weights, and additive ones whose palette stage recomputes its targets and
     draws its views afresh (no room for their footprints)."""
-    monkeypatch.setattr(backbone, "FOOTPRINT_BYTES", footprint_bytes)
+    monkeypatch.setattr(footprints, "FOOTPRINT_BYTES", footprint_bytes)
     root = request.getfixturevalue(scene)
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "8", "--finetune-iters", "4",
              "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6"]
@@ -384,18 +384,50 @@ def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, 
     assert load_run(tmp_path / "a").record.iteration == 12
 
 
+@pytest.mark.parametrize("stop, footprint_bytes", [(5, None), (25, None), (25, 1)])
+def test_a_splat_run_resumed_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch,
+                                                            stop, footprint_bytes):
+    """Stopped in the RGB stage (densification's totals mid-gather), or in the palette stage
+    (its window of footprints part way; one footprint at a time), then resumed: every
+    tensor and every logged loss as the uninterrupted run's."""
+    if footprint_bytes is not None:
+        monkeypatch.setattr(footprints, "FOOTPRINT_BYTES", footprint_bytes)
+        monkeypatch.setattr(footprints, "WINDOW_VISITS", 2)
+    flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "20", "--finetune-iters", "10",
+             "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6",
+             "--splats-refine-start", "2", "--splats-refine-every", "7"]
+    assert main(["train", str(cornell), "-o", str(tmp_path / "whole"), *flags]) == 0
+    save = backbone.save_checkpoint
+
+    def save_then_stop(run, path, *args):
+        save(run, path, *args)
+        if run.record.iteration == stop:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(backbone, "save_checkpoint", save_then_stop)
+    assert main(["train", str(cornell), "-o", str(tmp_path / "resumed"), *flags]) == 130
+    monkeypatch.setattr(backbone, "save_checkpoint", save)
+    assert main(["train", str(cornell), "-o", str(tmp_path / "resumed"), *flags,
+                 "--resume"]) == 0
+    whole, resumed = load_run(tmp_path / "whole"), load_run(tmp_path / "resumed")
+    assert [e["loss"] for e in whole.record.log] == [e["loss"] for e in resumed.record.log]
+    for a, b in zip(whole.model.state_dict().values(), resumed.model.state_dict().values(),
+                    strict=True):
+        assert torch.equal(a, b)
+
+
 def test_the_palette_stage_moves_its_window_of_footprints_on(cornell, tmp_path, monkeypatch):
     """Footprints that do not all fit: the stage draws from the views whose footprints fit
     (one here) and, after ``WINDOW_VISITS`` steps a view, makes the next views' instead."""
-    monkeypatch.setattr(backbone, "FOOTPRINT_BYTES", 1)
-    monkeypatch.setattr(backbone, "WINDOW_VISITS", 2)
-    starts, made = [], backbone._footprints
+    monkeypatch.setattr(footprints, "FOOTPRINT_BYTES", 1)
+    monkeypatch.setattr(footprints, "WINDOW_VISITS", 2)
+    starts, made = [], footprints.make_footprints
 
-    def footprints(run, views, start=0):
+    def counted(run, views, start=0):
         starts.append(start)
         return made(run, views, start)
 
-    monkeypatch.setattr(backbone, "_footprints", footprints)
+    monkeypatch.setattr(footprints, "make_footprints", counted)
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "4", "--finetune-iters", "6",
              "--splats-initial", "32", "--splats-patch", "6"]
     assert main(["train", str(cornell), "-o", str(tmp_path / "run"), *flags]) == 0
@@ -437,38 +469,39 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run, at_once,
     weight vector makes everywhere start every splat there."""
     if at_once:
         monkeypatch.setattr(backbone, "PAIRS_AT_ONCE", at_once)
+        monkeypatch.setattr(footprints, "PAIRS_AT_ONCE", at_once)
     run = load_run(splat_run)
     data = run.dataset()
     ids = data.indices("train")[:6]
     camera, channels = data.camera(ids[0]), run.model.weights.shape[1]
     device = run.model.means.device
-    views = backbone._training_views(run, data, ids, np.zeros(
+    views = footprints.training_views(run, data, ids, np.zeros(
         (len(ids), camera.height, camera.width, channels)), device)
-    footprints = backbone._footprints(run, views)
+    held = footprints.make_footprints(run, views)
     values = run.model.values(views[0].pose[:3, 3]).detach()
     covariance, opacity = run.model.gaussians()
     drawn, acc = draw(run.model.means, covariance, values, opacity, views[0].pose, camera,
                       run.config.splats.reach)
-    assert torch.allclose(footprints[0].draw(values), drawn, atol=1e-5)
-    assert torch.allclose(footprints[0].opacity, acc, atol=1e-6)  # a GPU's sums: any order
+    assert torch.allclose(held[0].draw(values), drawn, atol=1e-5)
+    assert torch.allclose(held[0].opacity, acc, atol=1e-6)  # a GPU's sums: any order
     values.requires_grad_(True)  # the backward goes through the transposed matrix
-    footprints[0].draw(values).square().sum().backward()
-    for m in (footprints[0].matrix, footprints[0].transposed):  # sorted, distinct columns
+    held[0].draw(values).square().sum().backward()
+    for m in (held[0].matrix, held[0].transposed):  # sorted, distinct columns
         torch.sparse_csr_tensor(m.crow_indices(), m.col_indices(), m.values(), m.shape,
                                 check_invariants=True)
-    dense = footprints[0].matrix.to_dense()
-    assert torch.equal(footprints[0].transposed.to_dense(), dense.T)
+    dense = held[0].matrix.to_dense()
+    assert torch.equal(held[0].transposed.to_dense(), dense.T)
     assert torch.allclose(values.grad, 2 * dense.T @ (dense @ values.detach()), atol=1e-5)
 
     one = 0.1 + 0.9 * torch.rand(channels, generator=torch.Generator().manual_seed(0))
     one = one.to(device)
     views = [replace(v, weights=(f.opacity[:, None] * one).view(v.weights.shape))
-             for v, f in zip(views, footprints)]
+             for v, f in zip(views, held)]
     started = _before_the_palette_stage(run)
     backbone._start_palette(started, views)
     assert not started.model.means.requires_grad
     weights = ACTIVATIONS[started.kind](started.model.weights.detach())
-    for view, footprint in zip(views, footprints):
+    for view, footprint in zip(views, held):
         assert torch.allclose(footprint.matrix @ weights, view.weights.view(-1, channels),
                               atol=1e-4)
 
@@ -599,7 +632,7 @@ def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, t
 
 def _views_of(box, alpha=None):
     """Two views of ``box`` (CAMERA), right halves blue, left halves black."""
-    from nerf_stage.splats.backbone import SeenViews
+    from nerf_stage.splats.start import SeenViews
 
     poses = np.stack([look_at(box.centre + np.array([0.0, -0.75, 0.25]) * box.scale,
                               box.centre, up=(0, 0, 1)),
@@ -617,7 +650,7 @@ def test_scenes_without_points_start_their_splats_where_the_views_look(unbounded
     view, in that pixel's colour, within the box (or, unbounded, about half of them beyond
     it, within ten times the distance at which its ray leaves the box)."""
     from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.backbone import initial_splats
+    from nerf_stage.splats.start import initial_splats
 
     box = SceneBox(np.array([0.0, 0.0, 1.0]), np.array([8.0, 8.0, 4.0]), unbounded=unbounded)
     alpha = np.ones((2, CAMERA.height, CAMERA.width), np.float32)
@@ -646,7 +679,7 @@ def test_scenes_without_points_start_their_splats_where_the_views_look(unbounded
 
 def test_bounded_scenes_start_their_splats_in_the_visual_hull():
     from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.backbone import initial_splats
+    from nerf_stage.splats.start import initial_splats
 
     box = SceneBox(np.zeros(3), np.array([2.0, 2.0, 2.0]))
     hull = np.zeros((4, 4, 4), bool)
@@ -663,7 +696,7 @@ def test_splats_started_where_the_views_look_are_no_wider_than_the_reach_allows(
     """Far splats of an unbounded scene lie far apart: each starts at most ``widest`` times
     its distance to the nearest camera wide, as sparse points do."""
     from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.backbone import initial_splats
+    from nerf_stage.splats.start import initial_splats
 
     box = SceneBox(np.zeros(3), np.full(3, 2.0), unbounded=True)
     views = _views_of(box)
@@ -681,8 +714,8 @@ def test_a_capture_with_sparse_points_starts_its_splats_there():
     colours, as wide as their neighbours are far."""
     from nerf_stage.data.points import Points
     from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.backbone import initial_splats
     from nerf_stage.splats.sh import SH_C0
+    from nerf_stage.splats.start import initial_splats
 
     box = SceneBox(np.array([1.0, 2.0, 3.0]), np.array([2.0, 1.0, 1.0]))
     rng = np.random.default_rng(0)
@@ -704,9 +737,9 @@ def test_splats_start_where_the_views_see_no_point_too(unbounded, monkeypatch):
     many for that half as the points are for the other."""
     from nerf_stage.data.points import Points
     from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.backbone import initial_splats
+    from nerf_stage.splats.start import initial_splats
 
-    monkeypatch.setattr(backbone, "COVER_CELLS", CAMERA.width // 2)  # cells of 2 x 2 pixels
+    monkeypatch.setattr(start, "COVER_CELLS", CAMERA.width // 2)  # cells of 2 x 2 pixels
     box = SceneBox(np.zeros(3), np.full(3, 2.0), unbounded=unbounded)
     alpha = np.ones((2, CAMERA.height, CAMERA.width), np.float32)
     alpha[1] = 0  # the second view is transparent: the first alone counts
@@ -716,14 +749,14 @@ def test_splats_start_where_the_views_see_no_point_too(unbounded, monkeypatch):
     local = np.stack([(x - CAMERA.cx) / CAMERA.fx, -(y - CAMERA.cy) / CAMERA.fy,
                       -np.ones_like(x)], -1).reshape(-1, 3) * depth
     points = Points(local @ pose[:3, :3].T + pose[:3, 3], np.full((len(local), 3), 0.5))
-    start = initial_splats(box, 1000, 0, torch.Generator().manual_seed(0), views, points)
-    world = start["means"].numpy()[len(points):] * box.scale + box.centre
+    started = initial_splats(box, 1000, 0, torch.Generator().manual_seed(0), views, points)
+    world = started["means"].numpy()[len(points):] * box.scale + box.centre
     assert len(world) == len(points)  # the empty half is as large as the other
     seen = (world - pose[:3, 3]) @ pose[:3, :3]
     px = CAMERA.cx + CAMERA.fx * seen[:, 0] / -seen[:, 2]
     distance = np.linalg.norm(world - pose[:3, 3], axis=1)
     assert (distance >= depth * (1 - 1e-5)).all() and (px >= CAMERA.width // 2).all()
-    colours = SH_C0 * start["colours"].numpy()[len(points):] + 0.5
+    colours = SH_C0 * started["colours"].numpy()[len(points):] + 0.5
     assert np.allclose(colours, (0.2, 0.4, 0.9), atol=1e-5)
 
 
@@ -733,7 +766,7 @@ def test_sparse_points_near_a_camera_start_no_wider_than_the_reach_allows():
     their distance to it, so that no starting splat is cut off square."""
     from nerf_stage.data.points import Points
     from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.backbone import initial_splats
+    from nerf_stage.splats.start import initial_splats
 
     box = SceneBox(np.zeros(3), np.ones(3))
     positions = np.array([[0.0, 0, 0], [0.9, 0, 0], [0, 0.9, 0], [0, 0, 0.9], [0.9, 0.9, 0.9]])
@@ -754,7 +787,7 @@ def test_the_palette_stage_decays_every_rate_to_lr_decay():
     """Over the RGB stage only the centres' rate decays (to a hundredth, 3D Gaussian
     splatting's); over the palette stage every rate decays to ``lr_decay`` of its start."""
     from nerf_stage.splats.backbone import _rates, _set_rates
-    from nerf_stage.train.trainer import stage_progress
+    from nerf_stage.train.schedule import stage_progress
 
     config = TrainConfig(backbone="splats", pretrain_iters=10, finetune_iters=10, lr_decay=0.25)
     names = ("means", "colours", "weights", "residual")

@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 
 from nerf_stage.data.cameras import Intrinsics  # noqa: E402
 from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
-from nerf_stage.train import losses  # noqa: E402
+from nerf_stage.train import losses, schedule  # noqa: E402
 from nerf_stage.train import trainer as trainer_module  # noqa: E402
 from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
@@ -242,8 +242,8 @@ def test_a_wall_clock_limit_ends_each_stage_at_its_share(cornell, tmp_path):
     run = trained(cornell, config, tmp_path / "run")  # each stage's first iteration only
     assert [entry["iteration"] for entry in run.record.log] == [1, 51]
     assert run.record.iteration == 100 and run.field.kind == "transport"
-    assert trainer_module.next_iteration(config, 7, 0.0) == 7  # within the limit
-    assert trainer_module.next_iteration(replace(config, minutes=0.0), 7, 1e9) == 7
+    assert schedule.next_iteration(config, 7, 0.0) == 7  # within the limit
+    assert schedule.next_iteration(replace(config, minutes=0.0), 7, 1e9) == 7
     with pytest.raises(InputError, match="minutes"):
         TrainConfig(minutes=-1.0)
     # subnormals, flushed to zero while training, are back after it
@@ -263,8 +263,8 @@ def test_learning_rates_decay_to_lr_decay_over_each_stage():
     for it in range(6):
         if it in (0, 4):  # each stage starts with new optimisers
             optimiser = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=0.1)
-        factor = config.lr_decay ** trainer_module.stage_progress(config, it, [])
-        trainer_module._decay_learning_rates([optimiser], factor)
+        schedule.set_rates([optimiser], schedule.stage_progress(config, it, []),
+                           lambda g: g.setdefault("initial_lr", g["lr"]), lambda g: 0.25)
         rates.append(optimiser.param_groups[0]["lr"])
     assert rates == pytest.approx([0.1, 0.1 * 0.25**0.25, 0.05, 0.1 * 0.25**0.75, 0.1, 0.05])
     with pytest.raises(InputError, match="lr_decay"):
@@ -276,7 +276,7 @@ def test_under_a_wall_clock_limit_a_stage_progresses_with_its_time_too():
     clock after 5 iterations (31 s), and fine-tuning has the 29 s left."""
     config = tiny_config(pretrain_iters=10, finetune_iters=10, minutes=1.0)
     log = [{"iteration": i, "seconds": 6.2 * i} for i in range(1, 6)]
-    progress = trainer_module.stage_progress
+    progress = schedule.stage_progress
     assert progress(config, 2, log[:1]) == pytest.approx(6.2 / 30)  # time ahead of 2 / 10
     assert progress(config, 4, log[:1]) == pytest.approx(0.4)  # iterations ahead of time
     log += [{"iteration": 11, "seconds": 38.25}, {"iteration": 12, "seconds": 45.5}]
@@ -290,13 +290,13 @@ def test_pretraining_may_have_a_time_limit_of_its_own():
     fine-tuning planned far longer than it can run has the rest and is ended by the clock."""
     config = tiny_config(pretrain_iters=10, finetune_iters=1000, minutes=1.0,
                          pretrain_minutes=0.25)
-    step = trainer_module.next_iteration
+    step = schedule.next_iteration
     assert step(config, 3, 14.9) == 3 and step(config, 3, 15.0) == 10  # pretraining's end
     assert step(config, 12, 59.9) == 12 and step(config, 12, 60.0) == 1010
     log = [{"iteration": i, "seconds": 5.0 * i} for i in range(1, 4)]  # ended by the clock
-    assert trainer_module.stage_progress(config, 2, log[:1]) == pytest.approx(5 / 15)
+    assert schedule.stage_progress(config, 2, log[:1]) == pytest.approx(5 / 15)
     log.append({"iteration": 11, "seconds": 37.5})
-    assert trainer_module.stage_progress(config, 11, log) == pytest.approx(22.5 / 45)
+    assert schedule.stage_progress(config, 11, log) == pytest.approx(22.5 / 45)
     untimed = replace(config, minutes=0.0)  # pretraining's limit alone
     assert step(untimed, 3, 15.0) == 10 and step(untimed, 12, 1e9) == 12
     with pytest.raises(InputError, match="pretrain_minutes"):

@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from palette_core.errors import InputError
+
 from ..backbones import SplatConfig
 from .model import rotation_matrices
 
@@ -81,6 +83,30 @@ class Densification:
             self.grad2d = self.count = self.clipped = None
         if step % self.reset == 0 and step > 0:
             self._reset_opacities(model, optimiser)
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The running totals since the last densification (gsplat's strategy state), for
+        the checkpoint; empty when none is gathered."""
+        if self.grad2d is None:
+            return {}
+        return {"grad2d": self.grad2d, "count": self.count, "clipped": self.clipped}
+
+    def load_state(self, state: dict, means: torch.Tensor) -> None:
+        """Continue from a checkpoint's ``state`` (``state``) of the model of ``means``.
+
+        Raises
+        ------
+        InputError
+            If the totals are not one (splats,) tensor each, as ``state`` writes them.
+        """
+        if not state:
+            return
+        kinds = {"grad2d": torch.float32, "count": torch.float32, "clipped": torch.bool}
+        if set(state) != set(kinds) or any(
+                not isinstance(state[k], torch.Tensor) or state[k].shape != (len(means),)
+                or state[k].dtype != dtype for k, dtype in kinds.items()):
+            raise InputError("the checkpoint's densification totals do not fit its splats")
+        self.grad2d, self.count, self.clipped = (state[k].to(means.device) for k in kinds)
 
     def _gather(self, model, info: dict, width: int, height: int) -> None:
         n = len(model.means)

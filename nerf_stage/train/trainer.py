@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import os
 import resource
-import time
-from bisect import bisect_right
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -43,6 +41,7 @@ from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_b
 from .appearance import Appearance, exposure_free_weights
 from .checkpoint import CHECKPOINT, read_checkpoint
 from .config import Space, Strategy, TrainConfig
+from .loop import train_loop
 from .losses import depth_loss, distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
 from .metrics import psnr_from_mse
 from .point_depth import point_targets
@@ -56,6 +55,7 @@ from .run import (
     restore,
     save_checkpoint,
 )
+from .schedule import set_rates, stage_progress
 
 #: ``--space auto`` on images with transparent pixels (``choose_scene_box``): iterations of each
 #: space's probe, pixels it is scored on, and by how many dB the unbounded probe must beat
@@ -165,91 +165,77 @@ def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: st
         restore(run, state)
         generator.set_state(state["generator"])
         optimiser_states = state["optimisers"]
-    start, log = run.record.iteration, run.record.log
     rundir.mkdir(parents=True, exist_ok=True)
     config.save(rundir / CONFIG)
     optimisers = _optimisers(run)
     if resume:
         load_optimisers(optimisers, optimiser_states, rundir)
-    terms = torch.as_tensor(run.terms, dtype=torch.float32, device=device)
-    background = torch.as_tensor(config.background, dtype=torch.float32, device=device)
-    bar = tqdm(desc=f"train {config.backbone}", initial=start, total=config.total_iters,
-               disable=not progress, unit="it")
-    clock = time.perf_counter() - (log[-1]["seconds"] if log else 0.0)
-    it = start
-    while it < config.total_iters:
-        finetuning = config.strategy == Strategy.TWO_STAGE and it >= config.pretrain_iters
-        if finetuning and run.field.kind == RGB:
-            _start_finetune(run)
-            _palette_targets(run, stack, rays)
-            _fit_output(run, rays, generator)
-            optimisers = _optimisers(run)
-        elif finetuning and it % config.checkpoint_every == 0:
-            _palette_targets(run, stack, rays)
-        loss, psnr = _step(run, optimisers, rays, terms, background, generator, it, finetuning,
-                           log, depth)
-        log.append({"iteration": it + 1, "seconds": time.perf_counter() - clock,
-                    "loss": loss.item(), "psnr": psnr, "stage": str(run.field.kind)})
-        after = next_iteration(config, it + 1, log[-1]["seconds"])
-        run.record.iteration = after
-        bar.update(after - it)
-        bar.set_postfix(stage=run.field.kind, loss=f"{loss.item():.2e}", psnr=f"{psnr:.2f}")
-        if (it + 1) % config.checkpoint_every == 0 or after == config.total_iters:
-            save_checkpoint(run, rundir / CHECKPOINT, optimisers, generator)
-        it = after
-    bar.close()
+    steps = FieldSteps(run, optimisers, rays, stack, generator, depth)
+    train_loop(config, steps, rundir, config.total_iters, str(config.backbone), progress)
     return run
 
 
-def stage_progress(config: TrainConfig, it: int, log: list, last: int | None = None) -> float:
-    """How far iteration ``it`` is through its stage, in [0, 1]: the share of the stage's
-    iterations done (two-stage: pretraining, then fine-tuning up to ``last``, as
-    ``next_iteration`` has them) or, under a wall-clock limit, the share of the stage's time
-    spent by the run's ``log`` when that is more, so that a stage that the clock ends has
-    its learning rates decayed as far as one that its iterations end."""
-    last = config.total_iters if last is None else last
-    pretraining = _pretraining(config, it)
-    two_stage = config.strategy == Strategy.TWO_STAGE
-    start = config.pretrain_iters if two_stage and not pretraining else 0
-    end = config.pretrain_iters if pretraining else last
-    done = min((it - start) / max(1, end - start), 1.0)
-    until = stage_deadline(config, pretraining, last)
-    if until is None or not log:
-        return done
-    begin = 0.0  # fine-tuning begins when pretraining's last logged iteration ended
-    stage = bisect_right(log, start, key=lambda entry: entry["iteration"]) if start else 0
-    if stage:
-        begin = log[stage - 1]["seconds"]
-    return min(max(done, (log[-1]["seconds"] - begin) / max(until - begin, 1e-9)), 1.0)
+class FieldSteps:
+    """The steps of a field backbone (``loop.Steps``): RGB pretraining, then (two-stage) the
+    palette stage with the density frozen, a new output layer fitted first (``_fit_output``)
+    and the targets made exposure-free at its start and at every checkpoint."""
 
+    def __init__(self, run: Run, optimisers: list, rays: dict, stack: WeightStack,
+                 generator: torch.Generator, depth: tuple | None):
+        self.run, self.optimisers, self.rays, self.stack = run, optimisers, rays, stack
+        self.generator, self.depth, self.finetuning = generator, depth, False
+        device = run.device
+        self.terms = torch.as_tensor(run.terms, dtype=torch.float32, device=device)
+        self.background = torch.as_tensor(run.config.background, dtype=torch.float32,
+                                          device=device)
 
-def next_iteration(config: TrainConfig, it: int, seconds: float,
-                   last: int | None = None) -> int:
-    """The iteration after ``it`` iterations in ``seconds``: ``it``, or the next stage's
-    first (two-stage fine-tuning; ``last``, by default ``config.total_iters``, for one stage
-    or the last) once the stage has reached its ``stage_deadline``."""
-    last = config.total_iters if last is None else last
-    pretraining = _pretraining(config, it)
-    until = stage_deadline(config, pretraining, last)
-    if until is None or seconds < until:
-        return it
-    return config.pretrain_iters if pretraining else last
+    @property
+    def stage(self) -> str:
+        return str(self.run.field.kind)
 
+    def before(self, it: int) -> None:
+        run, config = self.run, self.run.config
+        self.finetuning = config.strategy == Strategy.TWO_STAGE and it >= config.pretrain_iters
+        if self.finetuning and run.field.kind == RGB:
+            _start_finetune(run)
+            _palette_targets(run, self.stack, self.rays)
+            _fit_output(run, self.rays, self.generator)
+            self.optimisers = _optimisers(run)
+        elif self.finetuning and it % config.checkpoint_every == 0:
+            _palette_targets(run, self.stack, self.rays)
 
-def stage_deadline(config: TrainConfig, pretraining: bool, last: int | None = None
-                   ) -> float | None:
-    """Seconds from the run's start at which pretraining (or the stage after it, or the
-    only one) ends under ``config.minutes`` and ``config.pretrain_minutes``; None: never."""
-    if pretraining and config.pretrain_minutes:
-        return 60 * config.pretrain_minutes
-    if not config.minutes:
-        return None
-    last = config.total_iters if last is None else last
-    return 60 * config.minutes * (config.pretrain_iters / last if pretraining else 1.0)
+    def loss(self, it: int, progress: float) -> tuple[torch.Tensor, float]:
+        """Iteration ``it``: refine the occupancy grid (while the density trains), set the
+        learning rates, and the loss on a batch of pixels (and, while the density trains,
+        ``DEPTH_PIXELS`` of the ``depth`` targets' pixels)."""
+        run, config, generator = self.run, self.run.config, self.generator
+        if run.field.refines_occupancy and not self.finetuning:
+            settings = run.field.settings
+            run.occupancy.update_every_n_steps(it, run.field, generator,
+                                               settings.occupancy_every, settings.warmup_iters)
+        set_rates(self.optimisers, progress, lambda g: g.setdefault("initial_lr", g["lr"]),
+                  lambda g: config.lr_decay)
+        batch, targets = _pixel_batch(config, self.rays, generator), None
+        if self.depth is not None and not self.finetuning:
+            pick = torch.randint(len(self.depth[0]), (DEPTH_PIXELS,), generator=generator,
+                                 device=batch.device)
+            batch, targets = torch.cat([batch, self.depth[0][pick]]), self.depth[1][pick]
+        run.field.train()
+        return _loss(run, {key: value[batch] for key, value in self.rays.items()}, self.terms,
+                     self.background, generator, targets)
 
+    def update(self, loss: torch.Tensor, it: int) -> None:
+        for optimiser in self.optimisers:
+            optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        for optimiser in self.optimisers:
+            optimiser.step()
 
-def _pretraining(config: TrainConfig, it: int) -> bool:
-    return config.strategy == Strategy.TWO_STAGE and it < config.pretrain_iters
+    def extra(self) -> dict:
+        return {}
+
+    def save(self, path: Path) -> None:
+        save_checkpoint(self.run, path, self.optimisers, self.generator)
 
 
 def training_targets(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: Path,
@@ -276,33 +262,6 @@ def peak_memory(device: torch.device) -> str:
     if device.type == "cuda":
         text += f", {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GB on {device}"
     return text
-
-
-def _step(run: Run, optimisers: list, rays: dict, terms, background, generator, it: int,
-          finetuning: bool, log: list, depth: tuple | None = None) -> tuple[torch.Tensor, float]:
-    """Iteration ``it``: refine the occupancy grid (while the density trains), set the
-    learning rates, and take one optimiser step on a batch of pixels (and, while the density
-    trains, ``DEPTH_PIXELS`` of the ``depth`` targets' pixels); its loss and PSNR."""
-    config = run.config
-    if run.field.refines_occupancy and not finetuning:
-        settings = run.field.settings
-        run.occupancy.update_every_n_steps(it, run.field, generator,
-                                           settings.occupancy_every, settings.warmup_iters)
-    _decay_learning_rates(optimisers, config.lr_decay ** stage_progress(config, it, log))
-    batch, targets = _pixel_batch(config, rays, generator), None
-    if depth is not None and not finetuning:
-        pick = torch.randint(len(depth[0]), (DEPTH_PIXELS,), generator=generator,
-                             device=batch.device)
-        batch, targets = torch.cat([batch, depth[0][pick]]), depth[1][pick]
-    run.field.train()
-    loss, psnr = _loss(run, {key: value[batch] for key, value in rays.items()}, terms,
-                       background, generator, targets)
-    for optimiser in optimisers:
-        optimiser.zero_grad(set_to_none=True)
-    loss.backward()
-    for optimiser in optimisers:
-        optimiser.step()
-    return loss, psnr
 
 
 def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, train_ids,
@@ -336,17 +295,16 @@ def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weight
     run = _new_run(config, box, dataset, stack, train_ids, device)
     rays = _ray_bank(run, dataset, train_ids, weights, device)
     generator = torch.Generator(device=device).manual_seed(config.seed)
-    optimisers = _optimisers(run)
-    background = torch.as_tensor(config.background, dtype=torch.float32, device=device)
+    steps = FieldSteps(run, _optimisers(run), rays, stack, generator, None)
     space = "unbounded" if box.unbounded else "box"
     for it in tqdm(range(config.total_iters), desc=f"probe {space}", disable=not progress,
                    unit="it"):
-        _step(run, optimisers, rays, None, background, generator, it, False, [])
+        steps.update(steps.loss(it, stage_progress(config, it, []))[0], it)
     pixels = torch.randperm(len(rays["rgb"]), generator=generator, device=device)[:PROBE_PIXELS]
     with torch.no_grad():
         run.field.eval()
         return _loss(run, {key: value[pixels] for key, value in rays.items()}, None,
-                     background, None)[1]
+                     steps.background, None)[1]
 
 
 def _loss(run: Run, rays: dict, terms, background, generator,
@@ -547,15 +505,6 @@ def load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
     except (ValueError, KeyError, TypeError):
         raise InputError(f"{rundir} was trained with other optimisers than its parameters "
                          "take", fixes=[("force", "to start afresh")]) from None
-
-
-def _decay_learning_rates(optimisers: list, factor: float) -> None:
-    """Set the rates to ``factor`` times those the optimisers started with (``initial_lr``,
-    as torch's schedulers keep it): each stage's decay exponentially to
-    ``config.lr_decay`` times them at its end (``lr_decay ** stage_progress``)."""
-    for optimiser in optimisers:
-        for group in optimiser.param_groups:
-            group["lr"] = group.setdefault("initial_lr", group["lr"]) * factor
 
 
 def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
