@@ -1,21 +1,8 @@
-"""Multi-view datasets: Blender and nerfstudio ``transforms`` files, COLMAP models, and
-weight stacks.
+"""Multi-view datasets and the weight stacks joined to them.
 
-Three layouts are read (``LAYOUTS``, in the order a folder is looked at):
-
-- Blender synthetic scenes: ``transforms_{train,val,test}.json`` with
-  ``camera_angle_x`` and ``frames[]`` (``file_path`` without or with suffix,
-  ``transform_matrix`` camera-to-world, OpenGL axes), as ``nerf-stage simulate``
-  writes them.
-- nerfstudio: one ``transforms.json`` with ``fl_x``, ``fl_y``, ``cx``, ``cy``,
-  ``w``, ``h``, a lens (``camera_model`` OPENCV or OPENCV_FISHEYE with ``k1``-``k4``,
-  ``p1``, ``p2``) and ``frames[]``, where a frame may carry its own camera and lens (of one
-  image size); splits come
-  from ``train_filenames``, ``val_filenames`` and ``test_filenames`` where the file lists
-  them, else every eighth frame is held out for testing (the LLFF convention) and there
-  is no validation split.
-- COLMAP: a model (``sparse/0``, text or binary; ``colmap``) with its photos in ``images/``,
-  read as a nerfstudio capture in a normalised frame (every eighth photo held out likewise).
+A dataset folder is read in any of the layouts of ``layouts.LAYOUTS`` (Blender, nerfstudio,
+COLMAP, LLFF; one module each), which give its frames, splits, poses, cameras and lenses,
+sparse points and depth bounds where they have them (``layouts.Frames``).
 
 Photos taken through a distorting lens are undistorted once, when they are read, into
 pinhole images (``distortion``); a lens model we cannot undistort is refused.
@@ -25,40 +12,30 @@ training cameras (``nerf-stage simulate --off-ring``), scored apart (``Dataset.o
 
 Images are read as RGBA and composited on a chosen background; ``downscale`` N averages
 each N x N block of pixels (premultiplied by alpha), for captures larger than the training
-resolution (nerfstudio's ``--downscale-factor``): each photo is read as 8-bit and made small
-before the next is read, so a capture of full-size photos needs the memory of its small
-images only.
+resolution (nerfstudio's ``--downscale-factor``): each photo is read
+(``palette_core.io.load_image``, as every command reads it) and made small before the next
+is read, so a capture of full-size photos needs the memory of its small images only.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import os
-from collections.abc import Callable
 from dataclasses import astuple, dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from palette_core.errors import InputError
-from palette_core.io import image_size, load_image
+from palette_core.io import load_image
 from palette_core.stack import WeightStack
 
-from .cameras import Intrinsics, checked_camera, focal_length
-from .colmap import check_upright, find_model, model_frames, model_points, read_model
+from .cameras import Intrinsics
 from .distortion import Distortion, undistort, undistorted_camera
-from .points import Points, read_points
+from .layouts import LAYOUTS
+from .layouts.common import listing
+from .points import Points
 
-SPLITS = ("train", "val", "test")
-NERFSTUDIO_HOLDOUT = 8  # every eighth nerfstudio frame is a test view
 MAX_DOWNSCALE = 64
-#: What a nerfstudio frame may set for itself (else the file's top level says it).
-_CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model", "k1", "k2", "k3", "k4",
-                "p1", "p2")
-#: nerfstudio's camera models -> our distortion models (``distortion.MODELS``).
-NERFSTUDIO_MODELS = {"OPENCV": "opencv", "PINHOLE": "opencv", "SIMPLE_PINHOLE": "opencv",
-                     "OPENCV_FISHEYE": "fisheye"}
 
 
 @dataclass(frozen=True)
@@ -272,16 +249,16 @@ def join_weights(dataset: Dataset, stack: WeightStack, split: str = "train") -> 
             unmatched.append(name)
     if unmatched:
         raise InputError(f"weight stack has images that are not frames of {dataset.root}: "
-                         + _listing(unmatched))
+                         + listing(unmatched))
     missing = [f for f in frames if f not in by_name]
     if missing:
-        raise InputError(f"{split} frames without weights in the stack: {_listing(missing)}")
+        raise InputError(f"{split} frames without weights in the stack: {listing(missing)}")
     size = (dataset.intrinsics.height, dataset.intrinsics.width)
     weights = [_frame_weights(dataset, i, np.asarray(stack.weights[by_name[f]], np.float32))
                for i, f in zip(dataset.indices(split), frames)]
     wrong = [f for f, w in zip(frames, weights) if w.shape[:2] != size]
     if wrong:
-        raise InputError(f"weights of {_listing(wrong)} are not {size[1]}x{size[0]} "
+        raise InputError(f"weights of {listing(wrong)} are not {size[1]}x{size[0]} "
                          "like the images")
     return np.stack(weights).astype(np.float32)
 
@@ -302,224 +279,6 @@ def _frame_weights(dataset: Dataset, i: int, weights: np.ndarray) -> np.ndarray:
 def _same_image(frame: str, name: str) -> bool:
     frame_parts, name_parts = PurePosixPath(frame).parts, PurePosixPath(name).parts
     return frame_parts[len(frame_parts) - len(name_parts):] == name_parts
-
-
-def _listing(names: list[str], most: int = 5) -> str:
-    more = f" and {len(names) - most} more" if len(names) > most else ""
-    return ", ".join(names[:most]) + more
-
-
-def _load_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise InputError(f"{path} is not valid JSON: {exc}") from None
-    if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
-        raise InputError(f"{path}: expected an object with a 'frames' list")
-    return data
-
-
-def _field(data: dict, key: str, path: Path, kind=float):
-    value = data.get(key)
-    if (not isinstance(value, (int, float)) or isinstance(value, bool)
-            or not math.isfinite(value) or value <= 0):
-        raise InputError(f"{path}: field {key!r} must be a positive number, got {value!r}")
-    return kind(value)
-
-
-def _frames(data: dict, path: Path, default_suffix: str,
-            frames_outside: bool) -> tuple[list[str], list, list[bool]]:
-    """Image names (relative to root, with suffix), poses and off-ring flags of a ``frames``
-    list."""
-    names, poses, off_ring = [], [], []
-    for i, frame in enumerate(data["frames"]):
-        where = f"{path}: frames[{i}]"
-        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
-            raise InputError(f"{where}: missing 'file_path'")
-        name = frame["file_path"]
-        if not PurePosixPath(name).suffix:  # Blender's file_path leaves out ".png"
-            name += default_suffix
-        pose = np.asarray(frame.get("transform_matrix"), dtype=object)
-        if pose.shape not in ((4, 4), (3, 4)):
-            raise InputError(f"{where}: 'transform_matrix' must be 4x4, got shape {pose.shape}")
-        try:
-            pose = pose.astype(np.float64)
-        except (TypeError, ValueError):
-            raise InputError(f"{where}: 'transform_matrix' must hold numbers") from None
-        if not np.isfinite(pose).all():
-            raise InputError(f"{where}: 'transform_matrix' holds NaN or infinity")
-        if not isinstance(frame.get("off_ring", False), bool):
-            raise InputError(f"{where}: 'off_ring' must be true or false")
-        names.append(_frame_path(name, where, path.parent, frames_outside))
-        poses.append(np.vstack([pose[:3], [0.0, 0.0, 0.0, 1.0]]))
-        off_ring.append(frame.get("off_ring", False))
-    return names, poses, off_ring
-
-
-def _frame_path(name: str, where: str, root: Path, frames_outside: bool) -> str:
-    """A frame's image ``name`` normalised, InputError if it lies outside ``root``, by its
-    name or through a link (unless ``frames_outside``): a file from elsewhere cannot make us
-    read what it does not hold."""
-    path = PurePosixPath(os.path.normpath(name))
-    if not frames_outside and (path.is_absolute() or path.parts[:1] == ("..",)
-                               or not (root / path).resolve().is_relative_to(root.resolve())):
-        raise InputError(f"{where}: file_path {name!r} lies outside {root}",
-                         fixes=[("frames_outside", "to read it")])
-    return path.as_posix()
-
-
-@dataclass(frozen=True)
-class Frames:
-    """What a layout's reader finds in a dataset folder (``Dataset``'s fields of the same
-    names): frame paths, splits, (N, 4, 4) poses, the cameras (one for all frames, or one a
-    frame) and their distortions, (N,) off-ring marks (or None) and sparse points (or
-    None)."""
-
-    names: list[str]
-    splits: list[str]
-    poses: np.ndarray
-    cameras: list[Intrinsics]
-    distortions: list[Distortion]
-    off_ring: np.ndarray | None = None
-    points: Points | None = None
-
-
-@dataclass(frozen=True)
-class Layout:
-    """A dataset layout: the file that marks it (``marker``), whether a folder holds it
-    (``holds(root)``), and its reader (``read(root, frames_outside) -> Frames``)."""
-
-    marker: str
-    holds: Callable[[Path], bool]
-    read: Callable[[Path, bool], Frames]
-
-
-def _read_blender(root: Path, frames_outside: bool) -> Frames:
-    """NeRF's synthetic layout: ``transforms_{train,val,test}.json``, one camera."""
-    names, splits, poses, angle, off_ring = [], [], [], None, []
-    for split in SPLITS:
-        path = root / f"transforms_{split}.json"
-        if not path.is_file():
-            continue
-        data = _load_json(path)
-        split_angle = _field(data, "camera_angle_x", path)
-        if angle is not None and abs(split_angle - angle) > 1e-9:
-            raise InputError(f"{path}: camera_angle_x {split_angle} differs from the train split's")
-        angle = split_angle
-        split_names, split_poses, split_off = _frames(data, path, ".png", frames_outside)
-        names += split_names
-        poses += split_poses
-        off_ring += split_off
-        splits += [split] * len(split_names)
-    if not names:
-        raise InputError(f"{root}: the transforms files list no frames")
-    width, height = image_size(root / names[0])
-    focal = focal_length(width, angle)
-    camera = checked_camera(str(root / "transforms_train.json"), width, height, focal, focal,
-                            width / 2, height / 2)
-    return Frames(names, splits, np.array(poses), [camera], [Distortion()], np.array(off_ring))
-
-
-def _read_colmap(root: Path, frames_outside: bool) -> Frames:
-    """A COLMAP model (``sparse/0``, text or binary) with its photos in ``images/``."""
-    model = find_model(root)
-    reconstruction = read_model(model)
-    names, poses, cameras, distortions = model_frames(reconstruction, str(root))
-    names = [_frame_path(f"images/{name}", f"{model}: image", root, frames_outside)
-             for name in names]
-    check_upright(root, names, f"the COLMAP model in {model}")
-    return Frames(names, _holdout(len(names)), poses, cameras, distortions,
-                  points=model_points(reconstruction))
-
-
-def _read_nerfstudio(root: Path, frames_outside: bool) -> Frames:
-    """nerfstudio's layout: ``transforms.json``, a camera (and lens) per frame or for all."""
-    path = root / "transforms.json"
-    data = _load_json(path)
-    names, poses, off_ring = _frames(data, path, "", frames_outside)
-    if not names:
-        raise InputError(f"{path} lists no frames")
-    cameras, lenses = [], []
-    for i, frame in enumerate(data["frames"]):
-        own = {key: frame[key] for key in _CAMERA_KEYS if key in frame}
-        fields, where = {**data, **own}, f"{path}: frames[{i}]" if own else path
-        cameras.append(checked_camera(
-            str(where), _field(fields, "w", where, int), _field(fields, "h", where, int),
-            _field(fields, "fl_x", where), _field(fields, "fl_y", where),
-            _field(fields, "cx", where), _field(fields, "cy", where)))
-        lenses.append(_nerfstudio_lens(fields, where))
-    sizes = {(camera.width, camera.height) for camera in cameras}
-    if len(sizes) > 1:
-        listed = ", ".join(f"{w}x{h}" for w, h in sorted(sizes))
-        raise InputError(f"{path}: frames of different image sizes ({listed}) are not supported")
-    points = None
-    if "ply_file_path" in data:
-        if not isinstance(data["ply_file_path"], str):
-            raise InputError(f"{path}: ply_file_path must be a file name")
-        points = read_points(root / _frame_path(data["ply_file_path"], f"{path}: ply_file_path",
-                                                root, frames_outside))
-    return Frames(names, _nerfstudio_splits(data, names, path), np.array(poses), cameras,
-                  lenses, np.array(off_ring), points)
-
-
-#: Dataset layouts, looked for in this order; a new layout is a reader and an entry here.
-LAYOUTS = {
-    "blender": Layout("transforms_train.json", lambda root: (root / "transforms_train.json")
-                      .is_file(), _read_blender),
-    "nerfstudio": Layout("transforms.json", lambda root: (root / "transforms.json").is_file(),
-                         _read_nerfstudio),
-    "colmap": Layout("a COLMAP model (sparse/0)", lambda root: find_model(root) is not None,
-                     _read_colmap),
-}
-
-
-def _nerfstudio_lens(fields: dict, where) -> Distortion:
-    """The distortion of a nerfstudio camera (``camera_model``, ``k1``-``k4``, ``p1``,
-    ``p2``; OPENCV when no model is named, as nerfstudio reads it)."""
-    name = fields.get("camera_model", "OPENCV")
-    if not isinstance(name, str) or name not in NERFSTUDIO_MODELS:
-        raise InputError(f"{where}: camera_model {name!r} is not supported (read: "
-                         f"{', '.join(NERFSTUDIO_MODELS)}); undistort the photos first")
-    coefficients = {key: fields.get(key, 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
-    try:
-        return Distortion(NERFSTUDIO_MODELS[name],
-                          tuple(coefficients[f"k{i}"] for i in range(1, 5)),
-                          (coefficients["p1"], coefficients["p2"]))
-    except InputError as exc:
-        raise InputError(f"{where}: {exc}") from None
-
-
-def _nerfstudio_splits(data: dict, names: list[str], path: Path) -> list[str]:
-    """The split of each frame: from nerfstudio's ``train_filenames``, ``val_filenames`` and
-    ``test_filenames`` lists where the file has any, else every eighth frame held out
-    (``_holdout``). A frame is in one list, or in ``val`` and ``test`` both (nerfstudio
-    holds out its val views while training and its test views in ``ns-eval``; a capture
-    made for both names the same held-out frames twice): then a test view."""
-    lists = {split: data[f"{split}_filenames"] for split in SPLITS
-             if f"{split}_filenames" in data}
-    if not lists:
-        return _holdout(len(names))
-    listed = {}
-    for split, files in lists.items():
-        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
-            raise InputError(f"{path}: '{split}_filenames' must be a list of file paths")
-        for name in files:
-            name = PurePosixPath(os.path.normpath(name)).as_posix()
-            before = listed.setdefault(name, split)
-            if {before, split} == {"val", "test"}:
-                listed[name] = "test"
-            elif before != split:
-                raise InputError(f"{path}: {name} is listed in two splits")
-    unlisted = [name for name in names if name not in listed]
-    if unlisted:
-        raise InputError(f"{path}: frames in no split list: {_listing(unlisted)}")
-    return [listed[name] for name in names]
-
-
-def _holdout(n: int) -> list[str]:
-    """Splits of n frames of a capture: every eighth a test view (one frame: training)."""
-    return ["test" if i % NERFSTUDIO_HOLDOUT == NERFSTUDIO_HOLDOUT - 1 and n > 1 else "train"
-            for i in range(n)]
 
 
 def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: int,
@@ -548,6 +307,6 @@ def _read_frames(root: Path, names: list[str], camera: Intrinsics, downscale: in
                 rgba = lenses[i].undistort(rgba)
             frames.append(block_mean(rgba, downscale, rgba=True))
     if wrong:
-        raise InputError(f"{root}: images {_listing(wrong)} are not "
+        raise InputError(f"{root}: images {listing(wrong)} are not "
                          f"{camera.width}x{camera.height} as the cameras say")
     return np.stack(frames)

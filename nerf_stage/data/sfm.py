@@ -51,7 +51,8 @@ from .colmap import (
     model_points,
     read_model,
 )
-from .dataset import LAYOUTS, Dataset, load_dataset
+from .dataset import Dataset, load_dataset
+from .layouts import LAYOUTS
 from .points import POINTS_FILE, Points, write_points
 
 MIN_PHOTOS = 3  # fewer cannot make a capture to train on
