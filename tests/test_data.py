@@ -253,3 +253,55 @@ def test_downscale_averages_blocks_and_scales_the_camera(still_life):
 def test_bad_downscale_is_refused(still_life, factor):
     with pytest.raises(InputError, match="downscale"):
         load_dataset(still_life, downscale=factor)
+
+
+def _llff_capture(folder, rng, n=10, folder_name="images_2"):
+    """An LLFF capture of ``n`` forward-facing 8 x 6 photos in ``folder_name``, whose
+    ``poses_bounds.npy`` describes full-size 16 x 12 photos; the true OpenGL poses."""
+    from nerf_stage.data.cameras import look_at
+
+    poses = np.array([look_at([0.3 * np.cos(a), 0.2 * np.sin(a), 4.0], [0.0, 0.0, 0.0])
+                      for a in np.linspace(0, 2 * np.pi, n, endpoint=False)])
+    rows = []
+    for pose in poses:
+        llff = np.stack([-pose[:3, 1], pose[:3, 0], pose[:3, 2], pose[:3, 3],
+                         [12.0, 16.0, 20.0]], 1)  # x down, y right, z back; then h, w, f
+        rows.append(np.concatenate([llff.ravel(), [2.0 + rng.uniform(), 9.0]]))
+    np.save(folder / "poses_bounds.npy", np.array(rows))
+    (folder / folder_name).mkdir()
+    for i in range(n):
+        Image.fromarray(rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)).save(
+            folder / folder_name / f"IMG_{i:04d}.png")
+    return poses, np.array(rows)[:, 15:]
+
+
+def test_an_llff_capture_is_read_with_its_split_bounds_and_poses(tmp_path, rng):
+    poses, bounds = _llff_capture(tmp_path, rng)
+    dataset = load_dataset(tmp_path)
+    assert dataset.layout == "llff" and dataset.names[0] == "images_2/IMG_0000.png"
+    assert [i for i, s in enumerate(dataset.splits) if s == "test"] == [0, 8]  # llffhold
+    assert dataset.intrinsics.width == 8 and dataset.intrinsics.fx == pytest.approx(10.0)
+    factor = 1 / (bounds.min() * 0.75)
+    np.testing.assert_allclose(dataset.bounds, bounds * factor)
+    assert dataset.bounds.min() == pytest.approx(1 / 0.75)
+    for i in range(1, len(poses)):  # the same cameras, up to the world's frame and scale
+        truth = np.linalg.inv(poses[0]) @ poses[i]
+        read = np.linalg.inv(dataset.poses[0]) @ dataset.poses[i]
+        np.testing.assert_allclose(read[:3, :3], truth[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(read[:3, 3], truth[:3, 3] * factor, atol=1e-9)
+    assert np.allclose(dataset.poses[:, :3, 3].mean(0), 0, atol=1e-9)  # centred
+    assert dataset.poses[:, :3, 2].mean(0) @ [0, 0, 1] > 0.99  # looking down -z
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda t: t[:, :16], "(N, 17)"),
+    (lambda t: np.where(np.arange(17) == 15, np.nan, t), "NaN"),
+    (lambda t: np.where(np.arange(17) == 16, 0.5, t), "near < far"),
+    (lambda t: t[:3], "3 rows for the 10 photos"),
+])
+def test_a_poses_bounds_file_that_lies_is_one_line(change, message, tmp_path, rng, capsys):
+    _llff_capture(tmp_path, rng)
+    np.save(tmp_path / "poses_bounds.npy", change(np.load(tmp_path / "poses_bounds.npy")))
+    assert main(["train", str(tmp_path), "-o", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err

@@ -88,6 +88,9 @@ class Dataset:
     points : Points or None
         The capture's sparse points, in the poses' frame, where it has them
         (``points``: a nerfstudio ``ply_file_path``, a COLMAP model's ``points3D``).
+    bounds : (N, 2) float64 or None
+        Near and far depths of the scene in each frame, where the layout has them (LLFF's
+        ``poses_bounds.npy``), in the poses' units.
     """
 
     root: Path
@@ -105,6 +108,7 @@ class Dataset:
     off_ring: np.ndarray | None = None
     lenses: list[Lens] | None = None
     points: Points | None = None
+    bounds: np.ndarray | None = None
 
     def __post_init__(self):
         if self.off_ring is None:
@@ -167,7 +171,8 @@ def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
     images = rgba[..., :3] * alpha[..., None] + (1 - alpha[..., None]) * background
     return Dataset(root, names, splits, poses, intrinsics, images.astype(np.float32),
                    alpha, background, layout, frames_outside, downscale, frame_intrinsics,
-                   off_ring, lenses, points if points is not None and len(points) else None)
+                   off_ring, lenses, points if points is not None and len(points) else None,
+                   frames.bounds)
 
 
 def _lenses(cameras: list[Intrinsics], distortions: list[Distortion], n: int,

@@ -7,8 +7,11 @@ one entry here.
 from .blender import LAYOUT as BLENDER
 from .colmap import LAYOUT as COLMAP
 from .common import Frames, Layout
+from .llff import LAYOUT as LLFF
 from .nerfstudio import LAYOUT as NERFSTUDIO
 
-LAYOUTS = {"blender": BLENDER, "nerfstudio": NERFSTUDIO, "colmap": COLMAP}
+#: An LLFF capture's ``poses_bounds.npy`` is read before the COLMAP model it may also hold:
+#: its poses are the ones the forward-facing papers evaluate with.
+LAYOUTS = {"blender": BLENDER, "nerfstudio": NERFSTUDIO, "llff": LLFF, "colmap": COLMAP}
 
 __all__ = ["LAYOUTS", "Frames", "Layout"]
