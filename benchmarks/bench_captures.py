@@ -72,8 +72,8 @@ from nerf_stage.data.cameras import project
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.data.points import POINTS_FILE, write_points
 from nerf_stage.train.config import TrainConfig
+from nerf_stage.train.loading import load_run
 from nerf_stage.train.metrics import image_scores, psnr_from_mse
-from nerf_stage.train.run import load_run
 
 CAPTURES = ("fox", "lund", "sceaux", "monstree")
 METHODS = ("palette", "rgb", "nerfacto")

@@ -49,7 +49,8 @@ from nerf_stage.data.dataset import load_dataset
 from nerf_stage.edit.evaluation import evaluate
 from nerf_stage.train.checkpoint import CHECKPOINT
 from nerf_stage.train.config import BAKE_FACTOR, TrainConfig
-from nerf_stage.train.run import CONFIG, load_run
+from nerf_stage.train.loading import load_run
+from nerf_stage.train.run import CONFIG
 from nerf_stage.train.trainer import train
 from palette_core.basis import Basis
 from palette_core.cli.decompose import main as decompose

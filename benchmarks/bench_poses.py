@@ -34,8 +34,8 @@ from bench_scenes import SPLITS, noise_floor, render_scene, rendered
 
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.train.config import TrainConfig
+from nerf_stage.train.loading import load_run
 from nerf_stage.train.metrics import image_scores, pose_errors
-from nerf_stage.train.run import load_run
 from nerf_stage.train.trainer import train
 from palette_core import decompose, read_stack
 

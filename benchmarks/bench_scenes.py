@@ -45,8 +45,8 @@ from nerf_stage.data.dataset import load_dataset
 from nerf_stage.edit.editing import WeightRender
 from nerf_stage.fields import RGB
 from nerf_stage.train.config import TrainConfig
+from nerf_stage.train.loading import load_run
 from nerf_stage.train.metrics import image_scores
-from nerf_stage.train.run import load_run
 from nerf_stage.train.trainer import train
 from palette_core import decompose, read_stack
 

@@ -25,7 +25,8 @@ from nerf_stage.edit.editing import WeightRender, render_weights, write_gif
 from nerf_stage.edit.regions import Region
 from nerf_stage.fields import RGB
 from nerf_stage.splats import WRITERS, Splats, cached_bake, export_splats
-from nerf_stage.train.run import RunBase, load_run
+from nerf_stage.train.loading import load_run
+from nerf_stage.train.run import RunBase
 from palette_core.errors import InputError
 from palette_core.outputs import atomic_outputs, check_writable
 

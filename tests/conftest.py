@@ -67,7 +67,7 @@ def cornell_run(cornell, tmp_path_factory):
 def per_sample_run(cornell_run, tmp_path_factory):
     """``cornell_run`` with the paper's per-sample diffuse colours."""
     from nerf_stage.cli import main as nerf
-    from nerf_stage.train.run import load_run
+    from nerf_stage.train.loading import load_run
 
     from .nerf_runs import PER_SAMPLE_FLAGS
 

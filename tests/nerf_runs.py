@@ -4,7 +4,7 @@ from dataclasses import replace
 
 import torch
 
-from nerf_stage.backbones import GridConfig, HashConfig, MLPConfig
+from nerf_stage.backbone_settings import GridConfig, HashConfig, MLPConfig
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.train.config import TrainConfig
 from nerf_stage.train.trainer import train

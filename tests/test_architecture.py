@@ -22,10 +22,21 @@ def _modules() -> dict[str, Path]:
 
 
 def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
-    """The project modules that ``name`` imports, anywhere in its file (function bodies too)."""
+    """The project modules that ``name`` imports, anywhere in its file (function bodies too),
+    and, in a module that imports by name (``importlib``), the modules its strings name
+    (``"splats.backbone"``, ``"fields.grid:GridField"``; dict keys are names, not modules)."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    tree = ast.parse(path.read_text())
+    if any(isinstance(node, ast.Import) and any(a.name == "importlib" for a in node.names)
+           for node in ast.walk(tree)):
+        keys = {id(key) for node in ast.walk(tree) if isinstance(node, ast.Dict)
+                for key in node.keys}
+        top = name.split(".")[0]
+        found |= {f"{top}.{node.value.split(':')[0]}" for node in ast.walk(tree)
+                  if isinstance(node, ast.Constant) and isinstance(node.value, str)
+                  and id(node) not in keys}
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found |= {alias.name for alias in node.names if alias.name in modules}
         elif isinstance(node, ast.ImportFrom):
@@ -71,6 +82,13 @@ def test_no_import_cycle_in_the_package_graph():
     modules = _modules()
     graph = {name: _imports(name, path, modules) - {name} for name, path in modules.items()}
     assert _cycles(graph) == []
+
+
+def test_imports_by_name_are_imports():
+    modules = _modules()
+    found = _imports("nerf_stage.backbones", modules["nerf_stage.backbones"], modules)
+    assert {"nerf_stage.splats.backbone", "nerf_stage.fields.grid"} <= found
+    assert "nerf_stage.splats" not in found  # the table's key "splats", a name
 
 
 def test_cycle_finder_finds_a_cycle():

@@ -11,7 +11,7 @@ from nerf_stage.cli import main as nerf_stage  # noqa: E402
 from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
 from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import CONFIG_ENV  # noqa: E402
-from nerf_stage.train.run import load_run  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 from palette_core import read_stack  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
 

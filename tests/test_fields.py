@@ -6,7 +6,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.backbones import GridConfig, HashConfig, MLPConfig  # noqa: E402
+from nerf_stage.backbone_settings import GridConfig, HashConfig, MLPConfig  # noqa: E402
 from nerf_stage.fields import GridField, MLPField  # noqa: E402
 from nerf_stage.fields.grid import _corners, _Trilinear  # noqa: E402
 from nerf_stage.fields.hashgrid import HashEncoding, HashField  # noqa: E402

@@ -57,7 +57,7 @@ from nerf_stage.data.dataset import load_dataset  # noqa: E402
 from nerf_stage.edit.editing import read_render  # noqa: E402
 from nerf_stage.edit.regions import read_regions  # noqa: E402
 from nerf_stage.splats import read_splats  # noqa: E402
-from nerf_stage.train.run import load_run  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 
 
 def read_npz_stack(folder: Path) -> None:

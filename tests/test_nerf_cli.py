@@ -19,7 +19,7 @@ from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.edit.editing import read_render  # noqa: E402
 from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import BAKE_FACTOR  # noqa: E402
-from nerf_stage.train.run import load_run  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 
 from .nerf_runs import tiny_config, trained  # noqa: E402
 

@@ -104,7 +104,7 @@ from nerf_stage.edit.editing import (  # noqa: E402
     render_weights,
     write_render,
 )
-from nerf_stage.train.run import load_run  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -154,7 +154,7 @@ def test_the_free_distance_follows_the_occupied_cells():
 def test_each_view_renders_with_its_own_camera(scene_run):
     from dataclasses import replace
 
-    from nerf_stage.train.run import load_run
+    from nerf_stage.train.loading import load_run
 
     run = load_run(scene_run)
     poses = orbit_poses(rig_poses("orbit", 4, [0, 0.4, 0], 4.5, (20, 30)), 2, [0, 0.4, 0])

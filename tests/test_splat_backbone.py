@@ -10,7 +10,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.backbones import SplatConfig  # noqa: E402
+from nerf_stage.backbone_settings import SplatConfig  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
 from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.fields.base import ACTIVATIONS, RGB  # noqa: E402
@@ -22,7 +22,7 @@ from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import PIXELS_PER_SPLAT, Densification  # noqa: E402
 from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
-from nerf_stage.train.run import load_run  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 

@@ -30,7 +30,7 @@ from nerf_stage.splats import (  # noqa: E402
     write_splats,
 )
 from nerf_stage.splats import baking as bake_module  # noqa: E402
-from nerf_stage.train.run import load_run  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 from palette_core.basis import Basis, basis_terms  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 

@@ -15,8 +15,8 @@ from nerf_stage.train import losses, schedule  # noqa: E402
 from nerf_stage.train import trainer as trainer_module  # noqa: E402
 from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 from nerf_stage.train.metrics import image_scores, psnr  # noqa: E402
-from nerf_stage.train.run import load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 from palette_core.stack import read_stack  # noqa: E402

@@ -13,7 +13,7 @@ from nerf_stage.render.contraction import FAR, contract, ray_interval, ray_point
 from nerf_stage.render.march import march_rays, scale_near_gradients  # noqa: E402
 from nerf_stage.render.occupancy import OccupancyGrid  # noqa: E402
 from nerf_stage.render.scene_box import CAMERA_REACH, scene_box  # noqa: E402
-from nerf_stage.train.run import load_run  # noqa: E402
+from nerf_stage.train.loading import load_run  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
 from .nerf_runs import tiny_config, trained  # noqa: E402

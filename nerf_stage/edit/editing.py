@@ -30,7 +30,8 @@ from palette_core.swatch import palette_swatch
 from ..data.cameras import Intrinsics, orbit_poses
 from ..fields import RGB
 from ..render.samples import PixelSamples
-from ..train.run import Run, load_run, run_source
+from ..train.loading import load_run
+from ..train.run import Run, run_source
 from .regions import ColourRegion, Region, check_count, region_from_dict
 
 RENDER_FILE = "render.npz"

@@ -16,8 +16,9 @@ from palette_core.palette_file import read_palette_json
 
 from ..fields import RGB
 from ..simulation import SimulationRecord
+from ..train.loading import load_run
 from ..train.metrics import image_scores
-from ..train.run import Run, RunBase, load_run
+from ..train.run import Run, RunBase
 from .editing import WeightRender, render_poses
 
 

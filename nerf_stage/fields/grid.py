@@ -14,7 +14,7 @@ from torch import nn
 from palette_core.basis import Basis
 from palette_core.errors import InputError
 
-from ..backbones import GridConfig
+from ..backbone_settings import GridConfig
 from .base import RGB, Field, RaySampling, inverse_tone_map, positional_encoding, tone_map
 
 MAX_BAKE_FACTOR = 4  # a baked table grows with the factor's cube

@@ -17,7 +17,7 @@ import math
 import torch
 from torch import nn
 
-from ..backbones import HashConfig
+from ..backbone_settings import HashConfig
 from .base import RGB, Field, RaySampling
 from .grid import GridField, _Trilinear
 

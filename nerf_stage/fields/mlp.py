@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..backbones import MLPConfig
+from ..backbone_settings import MLPConfig
 from .base import RGB, Field, RaySampling, positional_encoding
 
 

@@ -24,7 +24,6 @@ CVPR 2023 (the two stages, the view-dependent residual beside the palette weight
 
 from __future__ import annotations
 
-import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -34,19 +33,18 @@ import torch
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
 
-from ..backbones import SplatConfig
+from ..backbone_settings import SplatConfig
 from ..data.dataset import Dataset
 from ..fields.base import RGB, inverse_tone_map, tone_map
-from ..render.scene_box import visual_hull
+from ..render.scene_box import SceneBox, visual_hull
 from ..train.appearance import Appearance, exposure_free_weights
-from ..train.checkpoint import CHECKPOINT
+from ..train.checkpoint import CHECKPOINT, load_optimisers
 from ..train.config import Strategy, TrainConfig
 from ..train.loop import train_loop
 from ..train.losses import recorded_rgb_loss, ssim_loss, weight_loss
 from ..train.metrics import psnr_from_mse
 from ..train.run import CONFIG, RunRecord, default_device
 from ..train.schedule import set_rates
-from ..train.trainer import choose_scene_box, load_optimisers, training_targets
 from .footprints import (
     PAIRS_AT_ONCE,
     Footprint,
@@ -74,21 +72,20 @@ __all__ = ["load_run", "train"]
 MEANS_DECAY = 0.01
 
 
-def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLike,
-          resume: bool = False, force: bool = False, weights_path: str = "",
-          progress: bool = True, device: torch.device | None = None) -> SplatRun:
-    """Train (or resume) a splat run and write its run folder (``trainer.train``'s
-    contract): RGB for ``pretrain_iters``, then the palette weights for ``finetune_iters``
+def train(config: TrainConfig, dataset: Dataset, stack, rundir: Path, weights: np.ndarray,
+          state: dict | None, box: SceneBox, weights_path: str = "", progress: bool = True,
+          device: torch.device | None = None) -> SplatRun:
+    """Train (or, given a checkpoint's ``state``, resume) a splat run in ``box`` on the
+    training frames' ``weights`` and write its run folder (``trainer.train`` hands them
+    over): RGB for ``pretrain_iters``, then the palette weights for ``finetune_iters``
     (``two-stage``); ``rgb`` stops after the first; ``traditional`` is not offered (the
     geometry needs colours to grow from)."""
     if config.strategy == Strategy.TRADITIONAL:
         raise InputError("the splats backbone trains two-stage or rgb, not traditional")
     device = device or default_device()
-    rundir = Path(rundir)
-    weights, state = training_targets(config, dataset, stack, rundir, resume, force)
     train_ids = dataset.indices("train")
-    run = (load_run(state, str(rundir / CHECKPOINT), device) if resume else
-           _started_run(config, dataset, stack, train_ids, weights, device, progress))
+    run = (load_run(state, str(rundir / CHECKPOINT), device) if state is not None else
+           _started_run(config, dataset, stack, box, train_ids, device))
     run.record.weights = weights_path
     if config.appearance and run.appearance is None:
         run.appearance = Appearance(len(train_ids)).to(device)
@@ -97,19 +94,18 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: str | os.PathLik
     rundir.mkdir(parents=True, exist_ok=True)
     config.save(rundir / CONFIG)
     steps = SplatSteps(run, views, stack, sum(v.alpha.numel() for v in views))
-    if resume:
+    if state is not None:
         steps.resume(state, rundir)
     last = config.pretrain_iters if config.strategy == Strategy.RGB else config.total_iters
     train_loop(config, steps, rundir, last, "splats", progress)
     return run
 
 
-def _started_run(config: TrainConfig, dataset: Dataset, stack, train_ids, weights, device,
-                 progress: bool) -> SplatRun:
-    """A new run in its scene box (``trainer.choose_scene_box``), its splats started from the
-    capture's points and where its views look (``start.initial_splats``)."""
+def _started_run(config: TrainConfig, dataset: Dataset, stack, box: SceneBox, train_ids,
+                 device) -> SplatRun:
+    """A new run in ``box``, its splats started from the capture's points and where its
+    views look (``start.initial_splats``)."""
     settings = config.splats
-    box = choose_scene_box(config, dataset, stack, train_ids, weights, device, progress)
     generator = torch.Generator().manual_seed(config.seed)
     channels = n_terms(len(stack.palette), stack.basis, stack.order)
     record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,

@@ -36,7 +36,8 @@ from palette_core.outputs import atomic_outputs, check_writable
 
 from ..data.cameras import Intrinsics
 from ..fields import RGB
-from ..train.run import Run, default_device, load_run, run_source
+from ..train.loading import load_run
+from ..train.run import Run, default_device, run_source
 from .model import Splats, covariances, matrix_quaternions, read_splats, write_splats
 from .rasterise import MAX_ALPHA, draw
 

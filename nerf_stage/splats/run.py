@@ -16,7 +16,7 @@ from tqdm import tqdm
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError, first_line
 
-from ..backbones import MAX_SPLATS
+from ..backbone_settings import MAX_SPLATS
 from ..data.cameras import Intrinsics
 from ..fields.base import ACTIVATIONS, INVERSE_ACTIVATIONS, RGB
 from ..render.samples import KEEP_WEIGHT, PixelSamples
@@ -204,7 +204,7 @@ def save_checkpoint(run: SplatRun, path: Path, optimiser, generator, state: dict
 
 
 def load_run(state: dict, path: str, device: torch.device) -> SplatRun:
-    """The splat run of a checkpoint's ``state`` (read by ``run.load_run``), on ``device``."""
+    """The splat run of a checkpoint's ``state`` (read by ``loading.load_run``), on ``device``."""
     try:
         base = run_fields(state, path)
         channels = n_terms(len(base["palette"]), base["basis"], base["order"])

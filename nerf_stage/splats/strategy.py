@@ -25,7 +25,7 @@ from torch import nn
 
 from palette_core.errors import InputError
 
-from ..backbones import SplatConfig
+from ..backbone_settings import SplatConfig
 from .model import rotation_matrices
 
 SPLIT_SHRINK = 1.6  # a split splat's two halves are this many times smaller (3DGS's 0.8 x 2)

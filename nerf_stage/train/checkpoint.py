@@ -135,3 +135,19 @@ def _checked(tensor: torch.Tensor, path: Path) -> int:
         raise InputError(f"checkpoint {path} holds a tensor of shape {tuple(tensor.shape)} "
                          f"whose storage has {max(held, 0)} of its {declared} bytes")
     return declared
+
+
+def load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
+    """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they do not fit
+    the run's parameters (a damaged or foreign checkpoint)."""
+    try:
+        for optimiser, state in zip(optimisers, states, strict=True):
+            optimiser.load_state_dict(state)
+            for group in optimiser.param_groups:
+                for p in group["params"]:
+                    moments = optimiser.state.get(p, {}).get("exp_avg", p)
+                    if moments.shape != p.shape:
+                        raise ValueError("moments of another shape")
+    except (ValueError, KeyError, TypeError):
+        raise InputError(f"{rundir} was trained with other optimisers than its parameters "
+                         "take", fixes=[("force", "to start afresh")]) from None

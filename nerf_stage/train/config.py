@@ -1,7 +1,7 @@
 """Training configuration: dataclasses saved as ``config.json`` beside the checkpoint.
 
 ``TrainConfig`` holds the settings every backbone shares and one nested dataclass per
-backbone, made from ``backbones.BACKBONES`` (``grid``: ``GridConfig``, ...);
+backbone, made from ``backbone_settings.SETTINGS`` (``grid``: ``GridConfig``, ...);
 ``nerf-stage train`` makes one flag per field (``palette_core.cli.add_config_arguments``):
 ``--pretrain-iters``, ``--grid-voxels``, ``--mlp-samples``, ... No torch here, so that the
 CLI can be built without the ``nerf`` extra.
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from palette_core.errors import InputError
 
-from ..backbones import BACKBONES, Backbone
+from ..backbone_settings import SETTINGS, Backbone
 from ..checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, member, positive
 
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
@@ -44,19 +44,19 @@ class Space(StrEnum):
 
 
 def _backbone_sections(cls: type) -> type:
-    """``cls`` as a dataclass with, after its own fields, one per backbone of ``BACKBONES``:
+    """``cls`` as a dataclass with, after its own fields, one per backbone of ``SETTINGS``:
     its settings, named as the backbone (``TrainConfig.grid.voxels``), so that a backbone's
-    settings live beside its table entry alone."""
-    for name, spec in BACKBONES.items():
-        cls.__annotations__[name] = spec.settings
-        setattr(cls, name, field(default_factory=spec.settings))
+    settings live in one place alone."""
+    for name, settings in SETTINGS.items():
+        cls.__annotations__[name] = settings
+        setattr(cls, name, field(default_factory=settings))
     return dataclass(cls)
 
 
 @_backbone_sections
 class TrainConfig:
     """How to train one weight NeRF (defaults suit the ``grid`` backbone on a CPU), with a
-    section of settings per backbone (``backbones.BACKBONES``)."""
+    section of settings per backbone (``backbone_settings.SETTINGS``)."""
 
     backbone: Backbone = Backbone.GRID
     """``grid`` (dense voxel grids, fast on CPUs), ``hash`` (a multi-resolution hash encoding:
@@ -169,9 +169,9 @@ class TrainConfig:
                 or not all(is_number(c) and 0 <= c <= 1 for c in background)):
             raise InputError(f"background must be three numbers in [0, 1], got {background!r}")
         self.background = tuple(float(c) for c in background)
-        for name, spec in BACKBONES.items():
-            if not isinstance(getattr(self, name), spec.settings):
-                raise InputError(f"{name} must be {spec.settings.__name__} settings")
+        for name, settings in SETTINGS.items():
+            if not isinstance(getattr(self, name), settings):
+                raise InputError(f"{name} must be {settings.__name__} settings")
 
     @property
     def total_iters(self) -> int:
@@ -179,7 +179,7 @@ class TrainConfig:
 
     @property
     def backbone_config(self):
-        """The nested settings of the chosen backbone (``backbones.BACKBONES``)."""
+        """The nested settings of the chosen backbone (``backbone_settings.SETTINGS``)."""
         return getattr(self, self.backbone)
 
     def to_dict(self) -> dict:
@@ -267,4 +267,4 @@ class TrainConfig:
 SAVED_WITHOUT = {"appearance": False, "depth_weight": 0.0}
 
 #: The nested backbone settings of ``TrainConfig``, by field name.
-_NESTED = {name: spec.settings for name, spec in BACKBONES.items()}
+_NESTED = dict(SETTINGS)

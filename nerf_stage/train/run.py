@@ -14,19 +14,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from palette_core.basis import Basis, basis_terms, check_basis, n_terms
-from palette_core.errors import InputError, first_line
+from palette_core.basis import Basis, basis_terms, check_basis
+from palette_core.errors import InputError
 
-from ..backbones import BACKBONES
 from ..data.cameras import Intrinsics
 from ..data.dataset import Dataset, check_downscale, load_dataset
-from ..fields import RGB, Field, RaySampling, make_field
+from ..fields.base import Field, RaySampling
 from ..render.march import render_rays, sample_positions
 from ..render.occupancy import OccupancyGrid
 from ..render.samples import KEEP_WEIGHT, PixelSamples
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays
 from .appearance import Appearance
-from .checkpoint import CHECKPOINT, read_checkpoint, write_checkpoint
+from .checkpoint import CHECKPOINT, write_checkpoint
 from .config import BAKE_FACTOR, TrainConfig
 
 CONFIG = "config.json"
@@ -313,41 +312,3 @@ def run_fields(state: dict, path: str) -> dict:
             "box": box_from_dict(state["box"], path),
             "intrinsics": Intrinsics.from_dict(state["intrinsics"], path), "palette": palette,
             "basis": basis, "order": int(state["order"]), "record": run_record(state)}
-
-
-def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> RunBase:
-    """The trained run in ``rundir``: a ``Run``, or what a backbone that is not a field
-    loads (``backbones.BackboneSpec``).
-
-    Raises
-    ------
-    InputError
-        If there is no readable checkpoint.
-    """
-    device = device or default_device()
-    path = Path(rundir) / CHECKPOINT
-    state = read_checkpoint(path)
-    try:
-        config = TrainConfig.from_dict(state["config"], str(path))
-        spec = BACKBONES[config.backbone]
-        if not spec.is_field:
-            return spec.module().load_run(state, str(path), device)
-        if "occupancy" not in state:  # a field run's own key
-            raise InputError(f"checkpoint {path} lacks occupancy")
-        base = run_fields(state, str(path))
-        channels = n_terms(len(base["palette"]), base["basis"], base["order"])
-        output = state["output"]
-        if output["kind"] != RGB and output["channels"] != channels:
-            raise InputError(f"{path}: the field outputs {output['channels']} channels, the "
-                             f"basis has {channels}")
-        field = make_field(config, base["box"], output["kind"], output["channels"])
-        occupancy = OccupancyGrid.over(base["box"], config.occupancy_voxels)
-        run = Run(**base, field=field, occupancy=occupancy)
-        restore(run, state)
-        run.field.to(device)
-        run.occupancy.to(device)
-        return run
-    except InputError:
-        raise
-    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
-        raise InputError(f"checkpoint {path} is malformed: {first_line(exc)}") from None

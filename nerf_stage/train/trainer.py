@@ -39,7 +39,7 @@ from ..render.march import march_rays
 from ..render.occupancy import OccupancyGrid
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 from .appearance import Appearance, exposure_free_weights
-from .checkpoint import CHECKPOINT, read_checkpoint
+from .checkpoint import CHECKPOINT, load_optimisers, read_checkpoint
 from .config import Space, Strategy, TrainConfig
 from .loop import train_loop
 from .losses import depth_loss, distortion_loss, recorded_rgb_loss, sparsity_loss, weight_loss
@@ -141,17 +141,17 @@ def _subnormals_flushed():
 def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: str | os.PathLike,
            resume: bool, force: bool, weights_path: str, progress: bool,
            device: torch.device | None) -> Run:
-    spec = BACKBONES[config.backbone]
-    if not spec.is_field:
-        return spec.module().train(config, dataset, stack, rundir, resume, force, weights_path,
-                                   progress, device)
     device = device or default_device()
     rundir = Path(rundir)
     weights, state = training_targets(config, dataset, stack, rundir, resume, force)
-    stack = replace(stack, weights=[])  # the stack's own maps (full-size) can be freed now
     train_ids = dataset.indices("train")
     box = (box_from_dict(state["box"], str(rundir / CHECKPOINT)) if resume else
            choose_scene_box(config, dataset, stack, train_ids, weights, device, progress))
+    spec = BACKBONES[config.backbone]
+    if not spec.is_field:
+        return spec.module().train(config, dataset, stack, rundir, weights, state, box,
+                                   weights_path, progress, device)
+    stack = replace(stack, weights=[])  # the stack's own maps (full-size) can be freed now
     run = _new_run(config, box, dataset, stack, train_ids, device)
     run.record.weights = weights_path
     _check_fits(weights, config.supersampling, device)
@@ -489,22 +489,6 @@ def _fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: in
         return loss
 
     fit.step(closure)
-
-
-def load_optimisers(optimisers: list, states: list, rundir: Path) -> None:
-    """Resume ``optimisers`` from a checkpoint's ``states``; InputError when they do not fit
-    the run's parameters (a damaged or foreign checkpoint)."""
-    try:
-        for optimiser, state in zip(optimisers, states, strict=True):
-            optimiser.load_state_dict(state)
-            for group in optimiser.param_groups:
-                for p in group["params"]:
-                    moments = optimiser.state.get(p, {}).get("exp_avg", p)
-                    if moments.shape != p.shape:
-                        raise ValueError("moments of another shape")
-    except (ValueError, KeyError, TypeError):
-        raise InputError(f"{rundir} was trained with other optimisers than its parameters "
-                         "take", fixes=[("force", "to start afresh")]) from None
 
 
 def _optimisers(run: Run) -> list[torch.optim.Optimizer]:
