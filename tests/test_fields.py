@@ -43,7 +43,7 @@ def test_output_activations(make, kind, rng):
 
 @pytest.mark.parametrize("kind", ["additive", "transport"])
 def test_a_new_output_layer_starts_at_the_mean_weights_everywhere(kind, rng):
-    """``trainer._fit_output`` starts here, so that a rare channel is neither dead nor
+    """``field_steps.fit_output`` starts here, so that a rare channel is neither dead nor
     saturated before the fit: every point gives the given outputs (normalised, for
     additive weights)."""
     field = small_grid([1, 1, 1], 6**3, 4, 16, kind, 4)

@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 
 from nerf_stage.data.cameras import Intrinsics  # noqa: E402
 from nerf_stage.data.dataset import join_weights, load_dataset  # noqa: E402
-from nerf_stage.train import losses, schedule  # noqa: E402
+from nerf_stage.train import field_steps, losses, schedule  # noqa: E402
 from nerf_stage.train import trainer as trainer_module  # noqa: E402
 from nerf_stage.train.checkpoint import CHECKPOINT  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
@@ -151,9 +151,9 @@ def test_the_new_output_layer_is_fitted_before_fine_tuning(scene, request, tmp_p
             values, _, _ = run.render_pixels(rays["origins"], rays["directions"])
             return float(losses.weight_loss(run.field.kind, values, rays["weights"]))
 
-    trainer_module._start_finetune(run)
+    field_steps.start_palette_stage(run)
     fresh = batch_loss()
-    trainer_module._fit_output(run, rays, torch.Generator().manual_seed(0))
+    field_steps.fit_output(run, rays, torch.Generator().manual_seed(0))
     assert batch_loss() < 0.75 * fresh
 
 
@@ -165,17 +165,17 @@ def test_resume_gives_the_uninterrupted_result(scene, appearance, tmp_path, monk
     root = request.getfixturevalue(scene)
     config = tiny_config(pretrain_iters=3, finetune_iters=3, appearance=appearance)
     whole = trained(root, config, tmp_path / "whole")
-    save = trainer_module.save_checkpoint
+    save = field_steps.save_checkpoint
 
     def save_then_stop(run, path, optimisers, generator):
         save(run, path, optimisers, generator)
         if run.record.iteration == 4:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(trainer_module, "save_checkpoint", save_then_stop)
+    monkeypatch.setattr(field_steps, "save_checkpoint", save_then_stop)
     with pytest.raises(KeyboardInterrupt):
         trained(root, config, tmp_path / "resumed")
-    monkeypatch.setattr(trainer_module, "save_checkpoint", save)
+    monkeypatch.setattr(field_steps, "save_checkpoint", save)
     resumed = trained(root, config, tmp_path / "resumed", resume=True)
     for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()):
         assert torch.equal(a, b)

@@ -143,7 +143,7 @@ class Field(nn.Module, ABC):
     def start_output(self, outputs: torch.Tensor) -> None:
         """Start the output layer at the constant (M,) positive ``outputs``: zero weights and
         the bias that the activation turns into them, so that no channel starts saturated
-        or dead (``trainer._fit_output``)."""
+        or dead (``field_steps.fit_output``)."""
         with torch.no_grad():
             self.output.weight.zero_()
             self.output.bias.copy_(INVERSE_ACTIVATIONS[self.kind](outputs))
