@@ -8,7 +8,8 @@ from palette_core.stack import DEFAULT_STACK
 
 
 def add(commands) -> None:
-    from ..data.sfm import CAMERA_MODELS, MAPPERS, MATCHERS
+    from ..data.photos import MATCHERS
+    from ..data.sfm import CAMERA_MODELS, MAPPERS
 
     poses = commands.add_parser(
         "poses", help="camera poses for a folder of photos (structure from motion, pycolmap)",

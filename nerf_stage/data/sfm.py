@@ -22,7 +22,6 @@ docs/capture.md.
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import shutil
@@ -36,8 +35,6 @@ from PIL import Image
 from tqdm import tqdm
 
 from palette_core.errors import InputError
-from palette_core.folders import files_in
-from palette_core.io import IMAGE_SUFFIXES, image_size, is_turned, load_image
 from palette_core.outputs import check_apart, check_outdir, publish_folder
 
 from .colmap import (
@@ -53,13 +50,10 @@ from .colmap import (
 )
 from .dataset import Dataset, load_dataset
 from .layouts import LAYOUTS
+from .photos import MATCHERS, MIN_PHOTOS, image_pairs, list_photos, upright
 from .points import POINTS_FILE, Points, write_points
 
-MIN_PHOTOS = 3  # fewer cannot make a capture to train on
 MIN_REGISTERED = 0.5  # share of the photos that must register
-EXHAUSTIVE_UP_TO = 150  # photos matched pair by pair; more are matched sequentially
-SEQUENTIAL_OVERLAP = 15
-MATCHERS = ("auto", "exhaustive", "sequential")
 MAPPERS = ("global", "incremental")
 SEED = 0  # RANSAC and the mappers: the same photos give the same poses
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -83,94 +77,6 @@ class PosesReport:
     than one when the set split."""
     posed: bool = False
     """The capture came with its poses, which it kept; its points were triangulated."""
-
-
-def list_photos(folder: str | os.PathLike) -> list[str]:
-    """Names of the photos in ``folder`` (its files, hidden ones aside), sorted.
-
-    Raises
-    ------
-    InputError
-        If ``folder`` is not a folder, holds fewer than ``MIN_PHOTOS`` files, a file that
-        is not an image, a link out of it (``folders.files_in``), or images of different
-        sizes.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise InputError(f"{folder} is not a folder of photos")
-    names = [p.name for p in files_in(folder, recursive=False) if not p.name.startswith(".")]
-    if len(names) < MIN_PHOTOS:
-        raise InputError(f"{folder} holds {len(names)} photo(s); structure from motion needs "
-                         f"at least {MIN_PHOTOS}")
-    sizes, strangers = {}, []
-    for name in names:
-        if not name.lower().endswith(IMAGE_SUFFIXES):
-            strangers.append(name)
-            continue
-        size = image_size(folder / name)  # as load_image turns it; InputError for a stranger
-        sizes.setdefault(size, []).append(name)
-    if strangers:
-        raise InputError(f"{folder} holds files that are not photos ({', '.join(strangers[:3])}"
-                         f"{' ...' if len(strangers) > 3 else ''}): give a folder of photos only")
-    if len(sizes) > 1:
-        listed = ", ".join(f"{w}x{h} ({group[0]})" for (w, h), group in sorted(sizes.items()))
-        raise InputError(f"{folder} holds photos of different sizes: {listed}; one capture "
-                         "needs one size")
-    return names
-
-
-def _upright(photos: Path, names: list[str], folder: Path) -> tuple[Path, list[str]]:
-    """``folder`` of the photos as ``load_image`` reads them, for COLMAP, which ignores EXIF
-    orientation: a turned photo is written upright as ``NAME.png`` (lossless), the others
-    linked as they are; and the names there. ``photos`` itself when none is turned."""
-    turned = {name for name in names if is_turned(photos / name)}
-    if not turned:
-        return photos, names
-    folder.mkdir()
-    upright = []
-    for name in names:
-        if name in turned:
-            image = load_image(photos / name)
-            pixels = image.pixels if image.alpha is None else np.concatenate(
-                [image.pixels, (image.alpha[..., None] * np.iinfo(image.pixels.dtype).max)
-                 .round().astype(image.pixels.dtype)], -1)
-            name += ".png"
-            _write_png(pixels, folder / name)
-        else:
-            (folder / name).symlink_to((photos / name).resolve())
-        upright.append(name)
-    return folder, upright
-
-
-def _write_png(pixels: np.ndarray, path: Path) -> None:
-    """(H, W, 3 or 4) uint8 or uint16 pixels as a PNG of their bit depth."""
-    if pixels.dtype == np.uint8:
-        Image.fromarray(pixels).save(path)
-        return
-    import png
-
-    height, width, planes = pixels.shape
-    with open(path, "wb") as file:
-        png.Writer(width, height, bitdepth=16, greyscale=False,
-                   alpha=planes == 4).write(file, pixels.reshape(height, -1))
-
-
-def image_pairs(names: list[str], matcher: str = "auto") -> list[tuple[str, str]]:
-    """The pairs of photos to match (``matcher``: see the module docstring).
-
-    Examples
-    --------
-    >>> len(image_pairs([f"{i}.png" for i in range(5)]))
-    10
-    >>> image_pairs([f"{i}.png" for i in range(40)], "sequential")[:2]
-    [('0.png', '1.png'), ('0.png', '2.png')]
-    """
-    if matcher == "exhaustive" or (matcher == "auto" and len(names) <= EXHAUSTIVE_UP_TO):
-        return list(itertools.combinations(names, 2))
-    offsets = sorted(set(range(1, SEQUENTIAL_OVERLAP + 1))
-                     | {2 ** k for k in range(len(names).bit_length())})
-    return [(names[i], names[i + d]) for i in range(len(names)) for d in offsets
-            if i + d < len(names)]
 
 
 def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
@@ -207,7 +113,7 @@ def estimate_poses(source: str | os.PathLike, out: str | os.PathLike,
         work, seconds = Path(work), {}
         models = None
         if model is None:
-            photos, names = _upright(photos, names, work / "upright")
+            photos, names = upright(photos, names, work / "upright")
             model, models = _structure_from_motion(pycolmap, photos, names, work,
                                                    camera_model, matcher, mapper, progress,
                                                    seconds)
