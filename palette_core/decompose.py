@@ -154,11 +154,7 @@ def decompose(
     """
     k = check_palette_size(k, max_error)
     method_options, palette_options = method_options or {}, palette_options or {}
-    check_weight_method(method, method_options)
-    check_options(PALETTE_METHODS, palette_method, "palette method", palette_options)
-    check_dtype(dtype)
-    if not max_pixels >= 1:
-        raise InputError(f"max_pixels must be at least 1, got {max_pixels}")
+    _check_settings(method, method_options, palette_method, palette_options, dtype, max_pixels)
     timings = {}
     start = time.perf_counter()
     root, paths = find_images(inputs)
@@ -184,15 +180,7 @@ def decompose(
                                                unit="img", disable=not progress)]
     timings["weights"] = time.perf_counter() - start
 
-    rmse, squared, count = {}, 0.0, 0
-    for image, w in zip(images, weights):
-        error = w.astype(np.float32) @ palette - image.rgb
-        sq = float(np.sum(error[image.opaque] ** 2))
-        n = int(image.opaque.sum())
-        rmse[image.name] = 255.0 * np.sqrt(sq / max(3 * n, 1))
-        squared, count = squared + sq, count + n
-    overall = 255.0 * np.sqrt(squared / max(3 * count, 1))
-
+    rmse, overall = _reconstruction_errors(images, weights, palette)
     meta = {
         "version": __version__,
         "k": k,
@@ -210,6 +198,30 @@ def decompose(
     stack = WeightStack(palette, weights, [im.name for im in images], method,
                         hull_faces=poly.faces.astype(np.int32), meta=meta)
     return Decomposition(stack, rmse, overall, timings, k, [Path(p) for p in inputs])
+
+
+def _check_settings(method: str, method_options: dict, palette_method: str,
+                    palette_options: dict, dtype: str, max_pixels: int) -> None:
+    """InputError unless ``decompose``'s settings name known methods with their options."""
+    check_weight_method(method, method_options)
+    check_options(PALETTE_METHODS, palette_method, "palette method", palette_options)
+    check_dtype(dtype)
+    if not max_pixels >= 1:
+        raise InputError(f"max_pixels must be at least 1, got {max_pixels}")
+
+
+def _reconstruction_errors(images: list, weights: list,
+                           palette: np.ndarray) -> tuple[dict[str, float], float]:
+    """RMSE (0-255 scale) of ``weights @ palette`` against each image's opaque pixels, by
+    image name, and over all of them."""
+    rmse, squared, count = {}, 0.0, 0
+    for image, w in zip(images, weights):
+        error = w.astype(np.float32) @ palette - image.rgb
+        sq = float(np.sum(error[image.opaque] ** 2))
+        n = int(image.opaque.sum())
+        rmse[image.name] = 255.0 * np.sqrt(sq / max(3 * n, 1))
+        squared, count = squared + sq, count + n
+    return rmse, 255.0 * np.sqrt(squared / max(3 * count, 1))
 
 
 def decompose_to(inputs: list, output: str | os.PathLike = DEFAULT_STACK,

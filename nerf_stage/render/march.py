@@ -182,14 +182,7 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     origins, directions : (R, 3)
         Normalised coordinates; unit directions.
     """
-    near, far, bend = ray_interval(occupancy, origins, directions)
-    if sampling.step is None:
-        n_samples = sampling.count
-        deltas = (far - near) / n_samples  # (R,)
-    else:
-        near = occupancy.skip_empty(origins, directions, near, far, sampling.step, bend)
-        n_samples = max(1, int(torch.ceil((far - near).max() / sampling.step)))
-        deltas = torch.full_like(near, sampling.step)
+    near, far, bend, n_samples, deltas = _spacing(occupancy, origins, directions, sampling)
     jitter = (torch.full_like(near[:, None], 0.5) if generator is None else
               torch.rand(len(near), 1, generator=generator, device=near.device))
     depth = torch.zeros_like(near)  # optical depth marched so far
@@ -235,6 +228,19 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
         ray, h, weight, transmittance, optical, t = (
             x[order] for x in (ray, h, weight, transmittance, optical, t))
     return Samples(ray, h, weight, transmittance, optical, 1 - torch.exp(-depth), t)
+
+
+def _spacing(occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.Tensor,
+             sampling: RaySampling) -> tuple:
+    """Where ``march_rays`` samples each ray: its (R,) marching interval ``near`` to ``far``
+    (past the empty space in front, for stepped rays) and ``bend`` (``ray_interval``), the
+    most samples a ray takes and the (R,) step between them."""
+    near, far, bend = ray_interval(occupancy, origins, directions)
+    if sampling.step is None:
+        return near, far, bend, sampling.count, (far - near) / sampling.count
+    near = occupancy.skip_empty(origins, directions, near, far, sampling.step, bend)
+    n_samples = max(1, int(torch.ceil((far - near).max() / sampling.step)))
+    return near, far, bend, n_samples, torch.full_like(near, sampling.step)
 
 
 def _sky_samples(field, origins, directions, far, bend, depth) -> tuple:

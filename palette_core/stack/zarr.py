@@ -185,6 +185,36 @@ class LazyWeights(Sequence):
         return weights
 
 
+def _frames(store, source: str, name: str, path: str, m: int, count: int,
+            max_pixels: int) -> list[tuple[str, int | None]]:
+    """The frames of array ``name`` (the weights of ``source``): (name, frame index, or None
+    for an image), checked: float32 or float16 frames of at most ``max_pixels`` pixels and
+    ``m`` channels, at most ``count`` of them, one chunk a frame, every chunk written."""
+    try:
+        data = store[name]
+    except KeyError:
+        raise InputError(f"{path}: weights of {source} ({name}) are missing") from None
+    except Exception as exc:  # noqa: BLE001 - zarr and json raise many kinds
+        raise InputError(f"{path}: weights of {source} ({name}) cannot be read: "
+                         f"{first_line(exc)}"
+                         ) from None
+    video = data.ndim == 4
+    shape = data.shape[1:] if video else data.shape
+    pixels = shape[0] * shape[1] if len(shape) == 3 else 0
+    if (len(shape) != 3 or shape[-1] != m or not 0 < pixels <= max_pixels
+            or data.dtype not in (np.float32, np.float16)
+            or (video and not 0 < data.shape[0] <= count)
+            or data.chunks != ((1, *shape) if video else shape)):
+        raise InputError(f"{path}: weights of {source} must be float32/float16 frames of at "
+                         f"most {max_pixels} pixels and {m} channels, one chunk a frame, "
+                         f"got {data.dtype} {data.shape} in chunks {data.chunks}")
+    missing = data.nchunks - data.nchunks_initialized
+    if missing:
+        raise InputError(f"{path}: weights of {source} miss {missing} of {data.nchunks} "
+                         "chunks")
+    return [(name, i) for i in range(data.shape[0])] if video else [(name, None)]
+
+
 def read_zarr_stack(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> WeightStack:
     """Read and validate a Zarr weight stack; its weights are read lazily, frame by frame.
 
@@ -237,31 +267,8 @@ def read_zarr_stack(path: str, max_pixels: int = DEFAULT_MAX_PIXELS) -> WeightSt
         done = False
     if not done:
         raise InputError(f"{path} is incomplete: palette-decompose's resume finishes it")
-    frames = []
-    for source, name in arrays.items():
-        try:
-            data = store[name]
-        except KeyError:
-            raise InputError(f"{path}: weights of {source} ({name}) are missing") from None
-        except Exception as exc:  # noqa: BLE001 - zarr and json raise many kinds
-            raise InputError(f"{path}: weights of {source} ({name}) cannot be read: "
-                             f"{first_line(exc)}"
-                             ) from None
-        video = data.ndim == 4
-        shape = data.shape[1:] if video else data.shape
-        pixels = shape[0] * shape[1] if len(shape) == 3 else 0
-        if (len(shape) != 3 or shape[-1] != m or not 0 < pixels <= max_pixels
-                or data.dtype not in (np.float32, np.float16)
-                or (video and not 0 < data.shape[0] <= len(names))
-                or data.chunks != ((1, *shape) if video else shape)):
-            raise InputError(f"{path}: weights of {source} must be float32/float16 frames of at "
-                             f"most {max_pixels} pixels and {m} channels, one chunk a frame, "
-                             f"got {data.dtype} {data.shape} in chunks {data.chunks}")
-        missing = data.nchunks - data.nchunks_initialized
-        if missing:
-            raise InputError(f"{path}: weights of {source} miss {missing} of {data.nchunks} "
-                             "chunks")
-        frames += [(name, i) for i in range(data.shape[0])] if video else [(name, None)]
+    frames = [frame for source, name in arrays.items()
+              for frame in _frames(store, source, name, path, m, len(names), max_pixels)]
     if len(frames) != len(names):
         raise InputError(f"{path}: {len(names)} names but {len(frames)} weight frames")
     return WeightStack(palette.astype(np.float32), LazyWeights(store, frames, names, path),
