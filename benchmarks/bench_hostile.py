@@ -29,10 +29,9 @@ from results import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from palette_core.stack import write_stack  # noqa: E402
 from tests.hostile import lying_npz, small_stack  # noqa: E402
 from tests.test_one_line import _huge_png  # noqa: E402
-
-from palette_core.stack import write_stack  # noqa: E402
 
 IMPORTS = ("import torch, numpy, PIL.Image, nerf_stage.cli, nerf_stage.train.loading, "
            "nerf_stage.splats, palette_core.cli.recolor, palette_core.cli.decompose")
