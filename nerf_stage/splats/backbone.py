@@ -78,10 +78,8 @@ def train(config: TrainConfig, dataset: Dataset, stack, rundir: Path, weights: n
     """Train (or, given a checkpoint's ``state``, resume) a splat run in ``box`` on the
     training frames' ``weights`` and write its run folder (``trainer.train`` hands them
     over): RGB for ``pretrain_iters``, then the palette weights for ``finetune_iters``
-    (``two-stage``); ``rgb`` stops after the first; ``traditional`` is not offered (the
-    geometry needs colours to grow from)."""
-    if config.strategy == Strategy.TRADITIONAL:
-        raise InputError("the splats backbone trains two-stage or rgb, not traditional")
+    (``two-stage``); ``rgb`` stops after the first (``traditional`` is not offered:
+    ``TrainConfig`` refuses it)."""
     device = device or default_device()
     train_ids = dataset.indices("train")
     run = (load_run(state, str(rundir / CHECKPOINT), device) if state is not None else
@@ -326,4 +324,4 @@ def _set_rates(optimiser, config: TrainConfig, extent: float, it: int,
     rates = _rates(config.splats, extent)
     set_rates([optimiser], progress, lambda group: rates[group["name"]],
               lambda group: config.lr_decay if palette else
-              MEANS_DECAY if group["name"] == "means" else 1.0)
+              MEANS_DECAY if group["name"] == "means" else None)

@@ -144,6 +144,9 @@ class TrainConfig:
         self.backbone = member(Backbone, self.backbone, "backbone")
         self.strategy = member(Strategy, self.strategy, "strategy")
         self.space = member(Space, self.space, "space")
+        if self.backbone == Backbone.SPLATS and self.strategy == Strategy.TRADITIONAL:
+            raise InputError("the splats backbone trains two-stage or rgb, not traditional "
+                             "(the geometry needs colours to grow from)", "strategy")
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
                       "distortion_weight", "depth_weight", "near_gradient", "minutes",
                       "pretrain_minutes")

@@ -69,10 +69,13 @@ def is_pretraining(config: TrainConfig, it: int) -> bool:
 
 
 def set_rates(optimisers: list, progress: float, start: Callable[[dict], float],
-              final: Callable[[dict], float]) -> None:
+              final: Callable[[dict], float | None]) -> None:
     """Set each parameter group's rate to its ``start(group)`` rate times its ``final(group)``
     factor to the power ``progress`` (``stage_progress``): an exponential decay over the
-    stage from its start rate to ``final`` times it (1: constant)."""
+    stage from its start rate to ``final`` times it; a group whose ``final`` is None keeps
+    its rate."""
     for optimiser in optimisers:
         for group in optimiser.param_groups:
-            group["lr"] = start(group) * final(group) ** progress
+            factor = final(group)
+            if factor is not None:
+                group["lr"] = start(group) * factor ** progress
