@@ -53,7 +53,11 @@ from .hostile import (
 torch = pytest.importorskip("torch")
 pycolmap = pytest.importorskip("pycolmap")
 
+from nerf_stage.data import colmap  # noqa: E402
 from nerf_stage.data.dataset import load_dataset  # noqa: E402
+
+#: A tiny model reads in milliseconds; one whose counts a mutation broke is stopped sooner.
+colmap.READ_SECONDS = 2
 from nerf_stage.edit.editing import read_render  # noqa: E402
 from nerf_stage.edit.regions import read_regions  # noqa: E402
 from nerf_stage.splats import read_splats  # noqa: E402

@@ -195,7 +195,7 @@ class SplatSteps:
         if self.run.kind == RGB:
             self.strategy.after_backward(self.run.model, self.optimiser, self.info, it + 1,
                                          self.progress, self.view.window[2],
-                                         self.view.window[3])
+                                         self.view.window[3], self.generator)
         self.optimiser.step()
 
     def extra(self) -> dict:

@@ -68,17 +68,19 @@ class Densification:
                    max(1, round(settings.reset_every * scale)))
 
     def after_backward(self, model, optimiser: torch.optim.Optimizer, info: dict, step: int,
-                       progress: float, width: int, height: int) -> None:
+                       progress: float, width: int, height: int,
+                       generator: torch.Generator | None = None) -> None:
         """Gather the gradients of step ``step``, ``progress`` through its stage
-        (``trainer.stage_progress``: its iterations' share or, when a clock ends the stage,
+        (``schedule.stage_progress``: its iterations' share or, when a clock ends the stage,
         its time's if more), from ``rasterise.draw``'s ``info`` of a view of ``width`` x
         ``height``; then densify, prune and reset as the schedule says, until
-        ``refine_stop`` of the stage."""
+        ``refine_stop`` of the stage. Split splats' halves are placed by the (CPU)
+        ``generator``, the run's, so that a resumed run splits as the uninterrupted one."""
         if progress >= self.settings.refine_stop:
             return
         self._gather(model, info, width, height)
         if step > self.start and step % self.every == 0:
-            self._grow(model, optimiser)
+            self._grow(model, optimiser, generator)
             self._prune(model, optimiser, oversized=step > self.reset)
             self.grad2d = self.count = self.clipped = None
         if step % self.reset == 0 and step > 0:
@@ -125,7 +127,7 @@ class Densification:
         self.count.index_add_(0, info["drawn"], torch.ones_like(info["drawn"], dtype=grad.dtype))
 
     @torch.no_grad()
-    def _grow(self, model, optimiser) -> None:
+    def _grow(self, model, optimiser, generator: torch.Generator | None = None) -> None:
         settings = self.settings
         mean = self.grad2d / self.count.clamp(min=1)
         high = mean > settings.grow_grad2d
@@ -142,7 +144,7 @@ class Densification:
             clone, split = clone & keep, split & keep
         clone_ids, split_ids = torch.nonzero(clone)[:, 0], torch.nonzero(split)[:, 0]
         scales = torch.exp(model.scales[split_ids])
-        offsets = torch.randn(2, len(split_ids), 3, device=scales.device) * scales
+        offsets = torch.randn(2, len(split_ids), 3, generator=generator).to(scales.device) * scales
         rotation = rotation_matrices(model.quats[split_ids])
         moved = model.means[split_ids] + torch.einsum("sij,nsj->nsi", rotation, offsets)
 
