@@ -76,7 +76,7 @@ def crafted(work: Path, run: Path) -> dict[str, tuple[Path, int, str]]:
     cases = {}
     for rows in (10**3, 10**6, 10**9):
         folder = work / f"repeat-{rows}"
-        shutil.copytree(run, folder, dirs_exist_ok=True)
+        shutil.copytree(run, folder, symlinks=True, dirs_exist_ok=True)
         state = torch.load(folder / "checkpoint.pt", weights_only=True)
         state["field"] = {k: v[:1].expand(rows, *v.shape[1:]) for k, v in state["field"].items()}
         declared = sum(v.numel() * v.element_size() for v in state["field"].values())
@@ -85,7 +85,7 @@ def crafted(work: Path, run: Path) -> dict[str, tuple[Path, int, str]]:
             folder / "checkpoint.pt", declared,
             command("nerf_stage.cli", ["export", str(folder), "-o", str(work / "o.ply")]))
     folder = work / "zip-lies"
-    shutil.copytree(run, folder, dirs_exist_ok=True)
+    shutil.copytree(run, folder, symlinks=True, dirs_exist_ok=True)
     data = bytearray((folder / "checkpoint.pt").read_bytes())
     entry = data.index(b"PK\x01\x02")
     data[entry + 24:entry + 28] = struct.pack("<I", 0xFFFFFFF0)
