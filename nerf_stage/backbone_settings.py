@@ -42,12 +42,12 @@ class GridConfig:
     line): diffuse."""
     deferred: bool = True
     """Shade each ray once, from its features composited along it, rather than each sample
-    (deferred shading; docs/nerf.md, "Deferred shading"): faster, and a view-dependent head
-    then tells a thin wall's two sides apart. False: the paper's per-sample colours, which
-    ``render --baked`` needs."""
+    (deferred shading; docs/decisions/0003-deferred-two-layer-head.md): faster, and a
+    view-dependent head then tells a thin wall's two sides apart. False: the paper's
+    per-sample colours, which ``render --baked`` needs."""
     head_layers: int = 2
-    """Hidden layers of the head, each ``head_width`` wide (docs/nerf.md, "The colour
-    head")."""
+    """Hidden layers of the head, each ``head_width`` wide
+    (docs/decisions/0003-deferred-two-layer-head.md)."""
     lr: float = 0.1
     """Adam learning rate of the voxel grids."""
     network_lr: float = 1e-3
@@ -184,7 +184,7 @@ class SplatConfig:
     """Mean screen-space gradient (normalised image units) above which a splat is cloned
     (small) or split (large). 3D Gaussian splatting's 2e-4 densifies a hundred and more
     times in its 30,000 iterations; a stage of a thousand densifies a few times and has to
-    grow more each time (docs/splats.md, "Where the views look")."""
+    grow more each time (docs/decisions/0012-splat-densification.md)."""
     grow_scale: float = 0.01
     """Largest standard deviation, as a share of the cameras' extent, of a splat cloned
     rather than split."""

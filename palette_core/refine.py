@@ -24,7 +24,7 @@ palette step is extrapolated, as Ang and Gillis (2019) do for NMF: it goes on pa
 the update V' by beta (V' - V), beta growing by half while that lowers E by the
 tolerance and halving, back at V', when it does not. On the 63 palettes of
 ``bench_decompose.py`` this ends a quarter fewer steps at a 13 % lower RMSE (median;
-docs/benchmarks.md, "The palette step by stage"). A colour that falls inside the hull of the
+docs/decisions/0001-refined-palette.md). A colour that falls inside the hull of the
 others is re-seeded at the worst-explained colour. Then each palette colour is pulled
 towards colours that really occur, so that it stays editable: towards
 ``COMMON_RADIUS`` (60 on 0-255) of the nearest common colour, one that covers

@@ -1,5 +1,5 @@
 """Regions of a scene: boxes and ellipsoids in world coordinates, inside which a palette edit
-applies (docs/selections.md, "Scenes").
+applies (docs/selections.md).
 
 Recolouring is linear in the weights, so a render's weights w split exactly into a part
 inside the regions and a part outside, each recoloured with its own palette:

@@ -60,10 +60,10 @@ class _Trilinear(torch.autograd.Function):
     of the table's columns.
 
     The backward scatters into a (C, N) buffer with ``index_add_``, which is the table's own
-    layout, so that the gradient needs no transposing copy (docs/nerf.md, "Channels-first
-    grids", measures it against an (N, C) table and ``embedding``). Positions get no
-    gradient. Renders gather rows instead (``GridField._feature_rows``).
-    """
+    layout, so that the gradient needs no transposing copy
+    (docs/decisions/0004-channels-first-grids.md measures it against an (N, C) table and
+    ``embedding``). Positions get no gradient. Renders gather rows instead
+    (``GridField._feature_rows``)."""
 
     @staticmethod
     def forward(ctx, table, index, weight):
@@ -155,7 +155,7 @@ class GridField(Field):
 
     def _feature_rows(self) -> torch.Tensor:
         """The feature grid as an (N, C) copy for reads in eval mode without gradients
-        (renders: a gather of rows is faster, docs/nerf.md "Channels-first grids"); made at
+        (renders: a gather of rows is faster, docs/decisions/0004-channels-first-grids.md); made at
         the first such read, dropped by ``train()`` and loading, made again after a move."""
         if self._rows is None or self._rows_of != self.feature_grid.data_ptr():
             self._rows = self.feature_grid.detach().t().contiguous()

@@ -1,6 +1,6 @@
 """Scene descriptions: JSON or TOML files, and the built-in scenes.
 
-A scene file holds five sections (docs/simulation.md, "Scene files", documents every field)::
+A scene file holds five sections (docs/simulation.md documents every field)::
 
     materials  name -> {"albedo": [r, g, b] | "texture": "skimage:coffee" | "img.png",
                         "texture_scale": [su, sv], "editable": bool}

@@ -60,7 +60,7 @@ MIN_ALPHA = 0.05  # the first splats' opacities at least (``refine`` moves them)
 REFINE_STEPS = {"cpu": 500, "cuda": 3000}
 #: Adam learning rates of ``refine``: centres in cells, log scales, quaternions, opacity
 #: logits, palette weights (or their logits, for the additive basis); larger ones left the
-#: splats jittering (docs/splats.md, where they were chosen).
+#: splats jittering (chosen on the still life and the Cornell box).
 LEARNING_RATES = {"centres": 0.02, "scales": 0.005, "rotations": 0.001, "opacities": 0.05,
                   "weights": 0.0025}
 

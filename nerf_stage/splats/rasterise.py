@@ -40,9 +40,9 @@ MAX_ALPHA = 0.99  # no splat is more opaque than this at its peak (3D Gaussian s
 NEAR = 0.01
 FOV_CLAMP = 1.3  # of the view's half angle, where the Jacobian is taken at most
 #: Pixels of a view whose pairs are found at once on a CPU (``_band``): the pairs tried are
-#: held for a band, not the view, and their sorts stay short (docs/splats.md, "The view's
-#: pairs found a band at a time"). On CUDA a view is one band: its memory holds the pairs,
-#: and every band would add its kernel launches and synchronisations to a step.
+#: held for a band, not the view, and their sorts stay short
+#: (docs/decisions/0013-rasteriser-bands.md). On CUDA a view is one band: its memory holds
+#: the pairs, and every band would add its kernel launches and synchronisations to a step.
 BAND_PIXELS = 1 << 14
 
 

@@ -39,7 +39,7 @@ FAR_SHELL = 1.9
 #: A starting splat has a standard deviation in its nearest training view of at most this
 #: share of ``--splats-reach``: its ellipse to 1/255 (2.5 deviations at ``INITIAL_OPACITY``)
 #: spans half the reach, so that none starts cut off square, nor covers every pixel of a
-#: small view (docs/splats.md, "The start's width").
+#: small view (docs/decisions/0011-splat-start.md).
 START_REACH = 0.2
 
 def initial_splats(box: SceneBox, n: int, degree: int, generator: torch.Generator,

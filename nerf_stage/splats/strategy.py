@@ -31,8 +31,7 @@ from .model import rotation_matrices
 SPLIT_SHRINK = 1.6  # a split splat's two halves are this many times smaller (3DGS's 0.8 x 2)
 #: Densification grows the splats to at most one for this many training pixels: past it,
 #: most splats are drawn strongly by no training view, and each step and the palette stage
-#: cost more than the splats give (docs/splats.md, "Why the open field stays behind" and
-#: "Where the views look").
+#: cost more than the splats give (docs/decisions/0012-splat-densification.md).
 PIXELS_PER_SPLAT = 10
 
 

@@ -5,7 +5,7 @@ geometry or as palette weights.
 Training image i sees ``A_i rgb + b_i`` of the composited colour, with A_i (3, 3) and
 b_i (3,) learnt; their mean over the images is held at the identity (the gauge: the scene
 keeps the average image's appearance), and renders use the identity. On by default
-(``TrainConfig.appearance``; docs/real_photos.md, "Exposure").
+(``TrainConfig.appearance``; docs/decisions/0008-per-image-appearance.md).
 
 The palette stage asks for the weights of each pixel's colour with its image's transform
 undone (``exposure_free_weights``, computed again as the transforms go on learning): the

@@ -23,7 +23,7 @@ from ..checks import MAX_ITERS, MAX_VOXELS, at_least_zero, integers, is_number, 
 #: Environment variable naming a JSON file of training defaults (``TrainConfig.defaults``).
 CONFIG_ENV = "NERF_STAGE_CONFIG"
 #: How many times finer than the field's grid baked renders read the colour part by default
-#: (``render --baked``; docs/benchmarks.md measures it).
+#: (``render --baked``; docs/nerf.md).
 BAKE_FACTOR = 4
 
 
@@ -80,7 +80,7 @@ class TrainConfig:
     """n: a pixel is the mean of n x n rays through the centres of its sub-pixels, in training
     (``batch_rays`` rays, so n^2 times fewer pixels a batch) and in renders (n^2 times the
     cost). A camera's pixels, and the simulator's, average over their area; one ray a pixel
-    can only point-sample edges (docs/nerf.md, "Pixels are areas")."""
+    can only point-sample edges (docs/decisions/0014-pixels-are-areas.md)."""
     head_width: int = 128
     """Width of the last hidden layer (the paper's 128/256/512 ablation)."""
     occupancy_voxels: int = 64**3
@@ -95,18 +95,20 @@ class TrainConfig:
     distortion_weight: float = 2e-3
     """Weight of mip-NeRF 360's distortion loss while the density trains, in unbounded scenes
     only (``space``): it gathers each ray's weight where the ray ends, against the floaters
-    that views from one ring leave (docs/nerf.md, "Unbounded scenes"); box scenes do without
+    that views from one ring leave (docs/decisions/0007-unbounded-space.md); box scenes do without
     it."""
     depth_weight: float = 0.1
     """Weight of the depth loss (NeRF backbones) on the training pixels where the capture's
     sparse points are seen (``point_depth``, ``losses.depth_loss``), while the density
-    trains, against floaters and walls at the wrong depth (docs/real_photos.md); captures
-    without points train without it; 0: off."""
+    trains, against floaters and walls at the wrong depth
+    (docs/decisions/0009-floaters-near-gradient-depth.md); captures without points train
+    without it; 0: off."""
     near_gradient: float = 2.0
     """In unbounded scenes, gradients of samples nearer to the camera than this (in the
     rays' marching parameter: box half sizes, contracted beyond the box's reach) are scaled
     down by the square of their distance over it (``march.scale_near_gradients``), against
-    floaters in front of the cameras (docs/real_photos.md); 0: off. Box scenes start their
+    floaters in front of the cameras (docs/decisions/0009-floaters-near-gradient-depth.md);
+    0: off. Box scenes start their
     samples at the box, away from the cameras, and do without it."""
     rgb_weight: float = 1.0
     """Weight of the L2 loss of the colours through the weights (``weights @ basis``) against
@@ -118,8 +120,8 @@ class TrainConfig:
     geometry nor into the palette weights (the palette stage fits the weights of each
     pixel's colour with its image's transform undone); renders show the
     images' average appearance (``appearance.Appearance``). Scenes without such changes
-    (simulated, rendered) learn transforms near the identity (docs/real_photos.md,
-    "Exposure")."""
+    (simulated, rendered) learn transforms near the identity
+    (docs/decisions/0008-per-image-appearance.md)."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour behind the scene, RGB in [0, 1]."""
     space: Space = Space.AUTO
@@ -139,7 +141,7 @@ class TrainConfig:
     pretrain_minutes: float = 0.0
     """Wall-clock limit of two-stage pretraining (0: P / (P + F) of ``minutes``), at most
     ``minutes``: with it, fine-tuning planned longer than the time left is ended by the
-    clock whatever P / (P + F) is (docs/nerf.md, "Under a wall-clock limit")."""
+    clock whatever P / (P + F) is (docs/decisions/0006-minutes.md)."""
     def __post_init__(self):
         self.backbone = member(Backbone, self.backbone, "backbone")
         self.strategy = member(Strategy, self.strategy, "strategy")

@@ -175,7 +175,7 @@ def fit_output(run: Run, rays: dict, generator: torch.Generator, iterations: int
     inputs at their visible samples (at the rays, for deferred fields) are cached, and the
     layer is fitted to the rays' weights (the training loss) by L-BFGS on that cache. This
     costs about one training step, and fine-tuning then starts near the RGB NeRF's
-    batch PSNR instead of far below it (docs/nerf.md).
+    batch PSNR instead of far below it (docs/decisions/0010-output-layer-fit.md).
 
     The layer starts at every channel's mean training weight (``Field.start_output``): from
     a random start, the first steps pushed a rare channel so far below zero on every ray

@@ -30,7 +30,7 @@ from .config import BAKE_FACTOR, TrainConfig
 
 CONFIG = "config.json"
 #: Rays per forward pass when rendering whole views, by device type: on the CPU larger
-#: chunks run slower (docs/real_photos.md); a GPU marches a half-size photo's rays at once.
+#: chunks run slower; a GPU marches a half-size photo's rays at once.
 RENDER_CHUNK = {"cpu": 1 << 15, "cuda": 1 << 19}
 
 

@@ -193,9 +193,10 @@ def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, 
     ``config.space`` says, and for ``auto`` on images with transparent pixels, the box
     unless a short RGB probe of ``PROBE_ITERS`` iterations in each space fits the training
     pixels at least ``PROBE_MARGIN`` dB better unbounded: a ground that runs on under an
-    open sky has transparent pixels too, and no box holds it (docs/nerf.md, "Choosing the
-    space"). The probe is a NeRF of the run's backbone, or the grid's for a backbone that
-    is not a field: where the scene ends does not depend on what draws it."""
+    open sky has transparent pixels too, and no box holds it
+    (docs/decisions/0007-unbounded-space.md). The probe is a NeRF of the run's backbone, or
+    the grid's for a backbone that is not a field: where the scene ends does not depend on
+    what draws it."""
     poses, cameras, alpha = (dataset.poses[train_ids], dataset.cameras(train_ids),
                              dataset.alpha[train_ids])
     box = scene_box(poses, cameras, alpha, config.space)

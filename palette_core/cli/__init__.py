@@ -139,7 +139,7 @@ def _show(caught: list) -> None:
 def exit_without_teardown(code: int) -> NoReturn:
     """End a finished command's process with ``code``, skipping Python's teardown of its
     modules: after numba has run, freeing them is a noticeable share of a one-photo
-    ``palette-decompose`` (docs/benchmarks.md, "The palette step by stage"). Every output is
+    ``palette-decompose`` (docs/decisions/0001-refined-palette.md). Every output is
     closed and in place by then (``outputs.py``); the standard streams are flushed here."""
     for stream in (sys.stdout, sys.stderr):
         try:

@@ -1,4 +1,4 @@
-"""The weight stack: a palette and per-image weights (docs/formats.md, "The weight stack"),
+"""The weight stack: a palette and per-image weights (docs/formats.md),
 and the checks that every reader of one applies.
 
 Stacks are stored as NPZ files (``stack.npz``) or Zarr stores (``stack.zarr``);

@@ -1,4 +1,4 @@
-"""Weight stacks in a Zarr store (docs/formats.md, "In a Zarr container"): collections
+"""Weight stacks in a Zarr store (docs/formats.md): collections
 beyond memory, read lazily frame by frame.
 
 A store is built where nothing of the user's is (``check_store_output``), in a hidden
