@@ -43,10 +43,11 @@ Scores: PSNR and SSIM, and PSNR after each render's affine colour fit to its pho
 (``psnr_cc``, ``metrics.colour_corrected``): the training photos' exposures are learned,
 a held-out photo's are not, and cameras set them photo by photo.
 
-Writes ``OUT/results.json``, ``OUT/NAME-METHOD.png`` (held-out views: truth | render |
-absolute error x4 | for ours, how many training views see each pixel's surface, black for
-none, white for four or more: ``views_seeing``, whose PSNR by count ``results.json`` holds
-as ``by_views_seeing``) and ``OUT/NAME-curve.png`` (held-out PSNR against training time:
+Writes ``benchmarks/results/captures.json`` (every capture and method in OUT so far),
+``OUT/results.json`` (the same, kept between calls), ``OUT/NAME-METHOD.png`` (held-out
+views: truth | render | absolute error x4 | for ours, how many training views see each
+pixel's surface, black for none, white for four or more: ``views_seeing``, whose PSNR by
+count the results hold as ``by_views_seeing``) and ``OUT/NAME-curve.png`` (held-out PSNR against training time:
 our runs' checkpoints, nerfacto's end). Runs are cached in OUT by capture and method.
 """
 
@@ -66,6 +67,7 @@ from pathlib import Path
 import numpy as np
 from bench_scenes import Snapshots, checkpoint_curve, curve_picture, error_map, rendered
 from PIL import Image
+from results import table, write_result
 
 from nerf_stage.backbones import BACKBONES
 from nerf_stage.data.cameras import project
@@ -463,6 +465,14 @@ def main() -> None:
             results_path.write_text(json.dumps(results, indent=1))
         curve_picture(results[name], f"{name}, {results[name][method]['size']}, "
                       f"{len(truth)} held-out views", args.out / f"{name}-curve.png")
+    made = table(f"Held-out views at 1/{args.downscale} size, {args.minutes:g} minutes a method",
+                 ["capture", "method", "size", "iterations", "training s", "PSNR",
+                  "PSNR colour-corrected", "SSIM", "peak GB"],
+                 [[name, method, r["size"], r["iterations"], round(r["seconds"]),
+                   round(r["psnr"], 2), round(r["psnr_cc"], 2), round(r["ssim"], 3),
+                   r.get("peak_gb") and round(r["peak_gb"], 2)]
+                  for name, methods in results.items() for method, r in methods.items()])
+    write_result("captures", "Real photo captures against nerfacto", [made], results)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ size).
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import skimage.data
 from PIL import Image
+from results import table, write_result
 
 from palette_core.outputs import atomic_outputs, publish_folder
 
@@ -116,8 +116,6 @@ def main() -> None:
     rng = np.random.default_rng(0)
     data = Path(args.data)
     rows = []
-    print(f"{'collection':<22} {'workers':>7} {'Mpx':>7} {'pass 1 s':>8} {'palette s':>9} "
-          f"{'pass 2 s':>8} {'MP/s':>6} {'peak RSS MB':>11} {'store MB':>9}", flush=True)
     for size in args.sizes:
         if size >= 1000:
             source = data / "video.mp4"
@@ -134,13 +132,17 @@ def main() -> None:
         for workers in (None, 2):
             row = run([str(source)], data, workers) | {"collection": label}
             rows.append(row)
-            total = row["pass1_s"] + row["palette_s"] + row["pass2_s"]
-            print(f"{label:<22} {row['workers']:>7} {row['mpx']:>7.0f} {row['pass1_s']:>8.1f} "
-                  f"{row['palette_s']:>9.2f} {row['pass2_s']:>8.1f} {row['mpx'] / total:>6.1f} "
-                  f"{row['rss_mb']:>11.0f} {row['store_mb']:>9.0f}", flush=True)
+            print(f"{label}, workers {row['workers']}: {row}", flush=True)
+    made = table("palette-decompose ... -o NAME.zarr", [
+        "collection", "workers", "Mpx", "pass 1 s", "palette s", "pass 2 s", "MP/s",
+        "peak RSS MB", "store MB"], [
+        [r["collection"], r["workers"], round(r["mpx"]), round(r["pass1_s"], 1),
+         round(r["palette_s"], 2), round(r["pass2_s"], 1),
+         round(r["mpx"] / (r["pass1_s"] + r["palette_s"] + r["pass2_s"]), 1),
+         round(r["rss_mb"]), round(r["store_mb"])] for r in rows])
+    write_result("collection", "Collections beyond memory", [made], {"rows": rows})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "collection.json").write_text(json.dumps(rows, indent=1))
     plot(rows, out)
 
 
@@ -167,7 +169,7 @@ def plot(rows: list[dict], out: Path) -> None:
     fig.suptitle("Streaming decomposition: time grows with the collection, memory does not")
     fig.tight_layout()
     fig.savefig(out / "collection_growth.png", dpi=120)
-    print(f"saved {out / 'collection_growth.png'} and {out / 'collection.json'}")
+    print(f"saved {out / 'collection_growth.png'}")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ distinct colour, then scattered to every pixel), reconstruction RMSE (0-255, per
 channel) over all pixels and of the worst image, the mean number of weights above
 1/255 per pixel, and the farthest palette colour's distance (0-255) to a common
 colour (a 5-bit bin covering at least 0.05 % of the pixels). Prints the table and
-the issue's targets, saves rows as JSON and an accuracy-versus-time plot.
+the targets; writes ``benchmarks/results/decompose.json`` and an accuracy-versus-time plot.
 
     python benchmarks/bench_decompose.py [--out benchmarks/out] [--cases NAME ...]
     python benchmarks/bench_decompose.py --profile [--reference CHECKOUT PYTHON]
@@ -20,7 +20,6 @@ chelsea 0.48, rocket 2.34, hubble_deep_field 1.64; coffee 0.45 at K = 8.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -28,6 +27,7 @@ import numpy as np
 import skimage.color
 import skimage.data
 from PIL import Image
+from results import table, write_result
 
 from palette_core import ColourSet, LoadedImage, find_images, rgb_to_mvc_weights
 from palette_core.io import load_images
@@ -200,7 +200,7 @@ def _versus_reference(reference: list[str], png: Path, k: int, folder: str, fres
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="benchmarks/out", help="folder for the plot and JSON")
+    parser.add_argument("--out", default="benchmarks/out", help="folder for the plot")
     parser.add_argument("--cases", nargs="+", default=None, help="photo or set names")
     parser.add_argument("--profile", action="store_true",
                         help="only the palette step's stages and a fresh palette-decompose "
@@ -219,11 +219,6 @@ def main() -> None:
         palette_polytope(warm.colours, warm.counts, 5, None, method)
 
     rows = []
-    header = (f"{'case':<18} {'Mpx':>5} {'K':>3} {'method':>8} {'palette s':>9} "
-              f"{'weights s':>9} {'RMSE':>7} {'worst':>7} {'ref':>5} {'w>1/255':>7} "
-              f"{'farthest':>8}")
-    print(header)
-    print("-" * len(header))
     for name, images in cases(args.cases).items():
         colour_set = ColourSet.from_images(images)
         mpx = colour_set.offsets[-1] / 1e6
@@ -232,15 +227,19 @@ def main() -> None:
                 row = measure(colour_set, k, method) | {"case": name, "mpx": mpx, "k": k,
                                                         "method": method}
                 rows.append(row)
-                ref = REFERENCE_RMSE.get((name, k), "")
-                print(f"{name:<18} {mpx:>5.2f} {row['K']:>3} {method:>8} "
-                      f"{row['palette_s']:>9.3f} {row['weights_s']:>9.3f} {row['rmse']:>7.3f} "
-                      f"{row['worst']:>7.3f} {ref:>5} {row['active']:>7.2f} "
-                      f"{row['farthest']:>8.1f}", flush=True)
+                print(f"{name} K={k} {method}: RMSE {row['rmse']:.3f}, palette "
+                      f"{row['palette_s']:.3f} s", flush=True)
+    made = table("Palette methods, K = 4..10", [
+        "case", "Mpx", "K", "method", "palette s", "weights s", "RMSE", "worst image",
+        "reference RMSE", "weights > 1/255", "farthest colour"], [
+        [r["case"], round(r["mpx"], 2), r["K"], r["method"], round(r["palette_s"], 3),
+         round(r["weights_s"], 3), round(r["rmse"], 3), round(r["worst"], 3),
+         REFERENCE_RMSE.get((r["case"], r["k"]), ""), round(r["active"], 2),
+         round(r["farthest"], 1)] for r in rows])
+    write_result("decompose", "Palettes: what accuracy costs in time", [made], {"rows": rows})
+    targets(rows)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "decompose.json").write_text(json.dumps(rows, indent=1))
-    targets(rows)
     plot(rows, out)
 
 
@@ -297,7 +296,7 @@ def plot(rows: list[dict], out: Path) -> None:
     ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
     fig.savefig(out / "accuracy_vs_time.png", dpi=120)
-    print(f"saved {out / 'accuracy_vs_time.png'} and {out / 'decompose.json'}")
+    print(f"saved {out / 'accuracy_vs_time.png'}")
 
 
 if __name__ == "__main__":

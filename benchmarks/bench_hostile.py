@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from results import write_result
+from results import table, write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -129,9 +129,10 @@ def main() -> int:
                          round(extra, 1)])
             print(f"{name:48} {size:>9} B file, declares {declared / 2**20:>10.3g} MB: exit "
                   f"{exit_code}, {extra:7.1f} MB above the imports' {base:.0f} MB", flush=True)
-    table = {"columns": ["crafted file", "bytes", "declares (MB)", "exit", "peak (MB)",
-                         f"above the imports' {base:.0f} MB"], "rows": rows}
-    write_result("hostile", results, table, "Crafted files refused: memory before refusal")
+    made = table("memory before refusal", ["crafted file", "bytes", "declares (MB)", "exit",
+                                           "peak (MB)", f"above the imports' {base:.0f} MB"],
+                 rows)
+    write_result("hostile", "Crafted files refused: memory before refusal", [made], results)
     return 0
 
 

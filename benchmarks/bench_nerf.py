@@ -33,7 +33,6 @@ not retrained.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from contextlib import nullcontext
 from dataclasses import replace
@@ -43,6 +42,7 @@ import numpy as np
 import torch
 from bench_scenes import Snapshots
 from bench_simulate import EDITED
+from results import table, write_result
 
 from nerf_stage.cli import main as nerf_stage
 from nerf_stage.data.dataset import load_dataset
@@ -133,7 +133,7 @@ def trained_run(name: str, config: TrainConfig, root: Path, stack: Path, runs: P
     return scores
 
 
-def baked_table(scene: str, runs: dict, rundir: Path, root: Path) -> None:
+def baked_table(scene: str, runs: dict, rundir: Path, root: Path) -> dict:
     """The per-sample network's render against the run baked at each of ``BAKE_FACTORS``,
     and the default deferred head's render."""
     run = load_run(rundir)
@@ -150,19 +150,10 @@ def baked_table(scene: str, runs: dict, rundir: Path, root: Path) -> None:
         rows.append([f"baked x{factor}", seconds, s["seconds_per_view"],
                      1 / s["seconds_per_view"], *rec(s), rec(s)[0] - rec(network)[0]])
     size = f"{dataset.intrinsics.width}x{dataset.intrinsics.height}"
-    table(f"{scene}: baked rendering against the network (two-stage, per-sample diffuse "
-          f"colours; {size} views)",
-          ["render", "bake s", "s / frame", "frames / s", "test PSNR", "test SSIM",
-           "PSNR - network"], rows)
-
-
-def table(title: str, header: list[str], rows: list[list]) -> None:
-    print(f"\n### {title}\n")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "---|" * len(header))
-    for row in rows:
-        print("| " + " | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row)
-              + " |")
+    return table(f"{scene}: baked rendering against the network (two-stage, per-sample "
+                 f"diffuse colours; {size} views)",
+                 ["render", "bake s", "s / frame", "frames / s", "test PSNR", "test SSIM",
+                  "PSNR - network"], rows)
 
 
 def rec(s: dict) -> tuple[float, float]:
@@ -208,77 +199,89 @@ def main() -> None:
     print(f"device: {device} ({torch.cuda.get_device_name() if device == 'cuda' else 'CPU'}, "
           f"{torch.get_num_threads()} threads); P = {p}, F = {f}, lr decay {args.lr_decay}")
     base = TrainConfig(pretrain_iters=p, finetune_iters=f, lr_decay=args.lr_decay)
-    results: dict[str, dict] = {}
-    for scene in args.scenes:
-        print(f"\n{scene}:", flush=True)
-        root, stack = prepare(scene, args.out / "data")
-        runs = args.out / "runs" / scene
-        one_layer = replace(base.grid, head_layers=1)
-        configs = {
-            "rgb": replace(base, strategy="rgb"),
-            "two-stage": base,
-            "traditional": replace(base, strategy="traditional"),
-            "two-stage per-sample": replace(base, grid=replace(
-                one_layer, deferred=False, view_frequencies=None)),
-            "two-stage one-layer": replace(base, grid=one_layer),
-        }
-        if scene == "still-life":
-            configs |= {f"two-stage w{w}": replace(base, head_width=w) for w in (256, 512)}
-        results[scene] = {name: trained_run(name, c, root, stack, runs)
-                          for name, c in configs.items()}
-        if scene == "still-life":  # the mlp gets the grid's training time
-            probe = trained_run("mlp probe", replace(base, backbone="mlp", pretrain_iters=4,
-                                                     finetune_iters=2), root, stack, runs,
-                                scored=False)
-            budget = results[scene]["two-stage"]["seconds"]
-            total = max(3, int(budget / probe["seconds_per_iter"]))
-            mlp = replace(base, backbone="mlp", pretrain_iters=total * p // (p + f),
-                          finetune_iters=total - total * p // (p + f))
-            results[scene]["mlp two-stage"] = trained_run("mlp two-stage", mlp, root, stack, runs)
-
-    for scene, runs in results.items():
-        table(f"{scene}: RGB NeRF against the weight NeRF, two-stage against traditional "
-              f"({p + f} iterations each)",
-              ["run", "test PSNR (dB)", "test SSIM", "training s", "s / iteration",
-               "paper PSNR", "paper SSIM"],
-              [[s["name"], *rec(s), s["seconds"], s["seconds_per_iter"], *PAPER[scene][name]]
-               for name, s in runs.items() if name in PAPER[scene]])
-    if "still-life" in results:
-        runs = results["still-life"]
-        table("still-life: last-layer width (two-stage)",
-              ["width", "test PSNR", "test SSIM", "s / frame", "paper vasedeck PSNR",
-               "paper lego PSNR"],
-              [[w, *rec(runs[n]), runs[n]["seconds_per_view"], *PAPER_WIDTHS[w]] for w, n in
-               ((128, "two-stage"), (256, "two-stage w256"), (512, "two-stage w512"))])
-        table("still-life: grid against mlp at equal training time",
-              ["backbone", "iterations", "training s", "s / iteration", "s / frame",
-               "test PSNR"],
-              [[n.split()[0] if n != "two-stage" else "grid", runs[n]["iterations"],
-                runs[n]["seconds"], runs[n]["seconds_per_iter"], runs[n]["seconds_per_view"],
-                rec(runs[n])[0]] for n in ("two-stage", "mlp two-stage")])
-    if "cornell-box" in results:
-        s = results["cornell-box"]["two-stage"]
-        table("cornell-box: edited palette against the re-simulated edit, recolouring speed",
-              ["edit PSNR", "edit SSIM", "render s / frame", "recolour s / frame", "speed-up"],
-              [[s["edit"]["psnr"], s["edit"]["ssim"], s["seconds_per_view"],
-                s["recolour_seconds_per_view"],
-                f"{s['seconds_per_view'] / s['recolour_seconds_per_view']:.0f}x"]])
-    for scene, runs in results.items():
-        table(f"{scene}: the colour part (two-stage; view-dependent heads see "
-              f"{base.grid.view_frequencies} frequencies of the view direction)",
-              ["colour part", "test PSNR", "test SSIM", "edit PSNR", "training s", "s / frame",
-               "bakes"],
-              [[head, *rec(runs[n]), runs[n].get("edit", {}).get("psnr", ""),
-                runs[n]["seconds"], runs[n]["seconds_per_view"], bakes]
-               for head, n, bakes in COLOUR_PARTS])
-    for scene, runs in results.items():
-        baked_table(scene, runs, args.out / "runs" / scene / "two-stage per-sample",
-                    args.out / "data" / scene)
+    results = {scene: scene_runs(scene, base, args.out) for scene in args.scenes}
+    made = paper_tables(results, base)
+    made += [baked_table(scene, runs, args.out / "runs" / scene / "two-stage per-sample",
+                         args.out / "data" / scene) for scene, runs in results.items()]
     args.out.mkdir(parents=True, exist_ok=True)
     plot(results, args.out / "nerf_psnr_time.png")
-    (args.out / "results.json").write_text(json.dumps(
-        {sc: {n: {k: v for k, v in s.items() if k != "curve"} for n, s in r.items()}
-         for sc, r in results.items()}, indent=1, default=float))
+    write_result("nerf", f"Weight NeRFs on the simulated scenes ({p} + {f} iterations)", made,
+                 {sc: {n: {k: v for k, v in s.items() if k != "curve"} for n, s in r.items()}
+                  for sc, r in results.items()})
+
+
+def scene_runs(scene: str, base: TrainConfig, out: Path) -> dict[str, dict]:
+    """Every configuration of the tables trained (or reused) on ``scene`` and scored."""
+    print(f"\n{scene}:", flush=True)
+    root, stack = prepare(scene, out / "data")
+    runs = out / "runs" / scene
+    one_layer = replace(base.grid, head_layers=1)
+    configs = {
+        "rgb": replace(base, strategy="rgb"),
+        "two-stage": base,
+        "traditional": replace(base, strategy="traditional"),
+        "two-stage per-sample": replace(base, grid=replace(
+            one_layer, deferred=False, view_frequencies=None)),
+        "two-stage one-layer": replace(base, grid=one_layer),
+    }
+    if scene == "still-life":
+        configs |= {f"two-stage w{w}": replace(base, head_width=w) for w in (256, 512)}
+    scored = {name: trained_run(name, c, root, stack, runs) for name, c in configs.items()}
+    if scene == "still-life":  # the mlp gets the grid's training time
+        probe = trained_run("mlp probe", replace(base, backbone="mlp", pretrain_iters=4,
+                                                 finetune_iters=2), root, stack, runs,
+                            scored=False)
+        total = max(3, int(scored["two-stage"]["seconds"] / probe["seconds_per_iter"]))
+        p, f = base.pretrain_iters, base.finetune_iters
+        mlp = replace(base, backbone="mlp", pretrain_iters=total * p // (p + f),
+                      finetune_iters=total - total * p // (p + f))
+        scored["mlp two-stage"] = trained_run("mlp two-stage", mlp, root, stack, runs)
+    return scored
+
+
+def paper_tables(results: dict[str, dict], base: TrainConfig) -> list[dict]:
+    """Tables 1 to 3 of the paper beside ours, the edit and the colour part."""
+    iterations = base.pretrain_iters + base.finetune_iters
+    made = [table(f"{scene}: RGB NeRF against the weight NeRF, two-stage against traditional "
+                  f"({iterations} iterations each)",
+                  ["run", "test PSNR (dB)", "test SSIM", "training s", "s / iteration",
+                   "paper PSNR", "paper SSIM"],
+                  [[s["name"], *rec(s), s["seconds"], s["seconds_per_iter"],
+                    *PAPER[scene][name]] for name, s in runs.items() if name in PAPER[scene]])
+            for scene, runs in results.items()]
+    if "still-life" in results:
+        runs = results["still-life"]
+        made.append(table("still-life: last-layer width (two-stage)",
+                          ["width", "test PSNR", "test SSIM", "s / frame",
+                           "paper vasedeck PSNR", "paper lego PSNR"],
+                          [[w, *rec(runs[n]), runs[n]["seconds_per_view"], *PAPER_WIDTHS[w]]
+                           for w, n in ((128, "two-stage"), (256, "two-stage w256"),
+                                        (512, "two-stage w512"))]))
+        made.append(table("still-life: grid against mlp at equal training time",
+                          ["backbone", "iterations", "training s", "s / iteration",
+                           "s / frame", "test PSNR"],
+                          [[n.split()[0] if n != "two-stage" else "grid",
+                            runs[n]["iterations"], runs[n]["seconds"],
+                            runs[n]["seconds_per_iter"], runs[n]["seconds_per_view"],
+                            rec(runs[n])[0]] for n in ("two-stage", "mlp two-stage")]))
+    if "cornell-box" in results:
+        s = results["cornell-box"]["two-stage"]
+        made.append(table("cornell-box: edited palette against the re-simulated edit, "
+                          "recolouring speed",
+                          ["edit PSNR", "edit SSIM", "render s / frame", "recolour s / frame",
+                           "speed-up"],
+                          [[s["edit"]["psnr"], s["edit"]["ssim"], s["seconds_per_view"],
+                            s["recolour_seconds_per_view"],
+                            f"{s['seconds_per_view'] / s['recolour_seconds_per_view']:.0f}x"]]))
+    made += [table(f"{scene}: the colour part (two-stage; view-dependent heads see "
+                   f"{base.grid.view_frequencies} frequencies of the view direction)",
+                   ["colour part", "test PSNR", "test SSIM", "edit PSNR", "training s",
+                    "s / frame", "bakes"],
+                   [[head, *rec(runs[n]), runs[n].get("edit", {}).get("psnr", ""),
+                     runs[n]["seconds"], runs[n]["seconds_per_view"], bakes]
+                    for head, n, bakes in COLOUR_PARTS])
+             for scene, runs in results.items()]
+    return made
 
 
 if __name__ == "__main__":

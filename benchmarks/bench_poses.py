@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_scenes import SPLITS, noise_floor, render_scene, rendered
+from results import table, write_result
 
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.train.config import TrainConfig
@@ -151,7 +152,21 @@ def main() -> None:
                                        f"{scores[s]['ssim']:.3f}" if s in scores else
                                        f"{s}: no view registered" for s in SPLITS)
               + f", trained in {scores['seconds']:.0f} s", flush=True)
-    (args.out / f"{scene.name}-results.json").write_text(json.dumps(results, indent=1))
+    poses = table(f"{scene.name}: poses against Blender's ({args.camera_model})",
+                  ["registered", "rotation median (deg)", "rotation worst (deg)",
+                   "centre median (share)", "centre worst (share)"],
+                  [[f"{results['registered']} of {results['photos']}",
+                    *results["rotation_degrees"], *results["centre_error_share"]]])
+    trained = table(f"{scene.name}: trained on each set of poses (PSNR dB / SSIM)",
+                    ["poses", *SPLITS, "noise floor", "training s"],
+                    [[label, *(f"{scores[s]['psnr']:.2f} / {scores[s]['ssim']:.3f}"
+                               if s in scores else "none registered" for s in SPLITS),
+                      ", ".join(f"{s} {floor[s]['psnr']:.2f}" for s in SPLITS),
+                      round(scores["seconds"])]
+                     for label, scores in results.items() if label.endswith("poses")
+                     or label.startswith("estimated-poses")])
+    write_result(f"poses-{scene.name}", "Structure from motion against Blender's cameras",
+                 [poses, trained], results)
 
 
 if __name__ == "__main__":

@@ -20,14 +20,14 @@ view, truth and render, before and after, with the error map, ``OUT/regions.png`
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from bench_nerf import scene_run, table
+from bench_nerf import scene_run
 from PIL import Image
+from results import table, write_result
 
 from nerf_stage.edit.editing import render_poses, render_weights
 from nerf_stage.edit.evaluation import resimulated_views
@@ -72,9 +72,9 @@ def main() -> None:
     leak = float(np.abs(local - before).mean(-1)[outside].mean() * 255)
     samples = len(render.samples.pixel) / render.opacity.size
     seconds = region_seconds(run, poses[0], region)
-    table(f"{SCENE}: the {OBJECT} recoloured inside {args.region} (test views)",
-          ["render against truth", "PSNR", "SSIM"],
-          [[label, s["psnr"], s["ssim"]] for label, s in rows.items()])
+    made = table(f"{SCENE}: the {OBJECT} recoloured inside {args.region} (test views)",
+                 ["render against truth", "PSNR", "SSIM"],
+                 [[label, s["psnr"], s["ssim"]] for label, s in rows.items()])
     print(f"\nmean change outside (pixels the truth leaves unchanged, "
           f"{outside.mean():.0%} of all): {leak:.3f} / 255")
     print(f"samples kept per pixel: {samples:.1f}; region moved and a 100 x 100 view "
@@ -82,7 +82,12 @@ def main() -> None:
     results = {"scores": rows, "outside_change_255": leak, "outside_share": float(outside.mean()),
                "samples_per_pixel": samples, "region_recolour_seconds": seconds,
                "region": region.to_dict(), "edit": edit.tolist()}
-    (args.out / "regions.json").write_text(json.dumps(results, indent=1))
+    outside_table = table("outside the region, and speed",
+                          ["mean change outside (0-255)", "samples kept a pixel",
+                           "region moved, view recoloured (ms)"],
+                          [[round(leak, 3), round(samples, 1), round(1000 * seconds, 2)]])
+    write_result("regions", "Local edits of a scene against the simulator's exact edit",
+                 [made, outside_table], results)
     view = [truth[0], before[0], truth_local[0], local[0],
             np.repeat(np.abs(local[0] - truth_local[0]).mean(-1, keepdims=True) * 10, 3, -1)]
     picture = (np.clip(np.concatenate(view, 1), 0, 1) * 255).round().astype(np.uint8)

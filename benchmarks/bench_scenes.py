@@ -27,7 +27,6 @@ import argparse
 import contextlib
 import dataclasses
 import itertools
-import json
 import os
 import shutil
 import subprocess
@@ -39,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from results import table, write_result
 
 from nerf_stage.backbones import BACKBONES
 from nerf_stage.data.dataset import load_dataset
@@ -265,7 +265,13 @@ def main() -> None:
             curves[label[len(name) + 1:]] = {"curve": curve}
         if args.curve_points:
             curve_picture(curves, f"{name}, test views", args.out / f"{name}-curve.png")
-    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    made = table("Held-out views against each scene's noise floor (PSNR dB / SSIM)",
+                 ["run", "space", *(f"{s} (under the floor)" for s in SPLITS), "training s"],
+                 [[label, "unbounded" if r["unbounded"] else "box",
+                   *(f"{r['scores'][s]['psnr']:.2f} / {r['scores'][s]['ssim']:.3f} "
+                     f"({r['floor'][s]['psnr'] - r['scores'][s]['psnr']:.2f})" for s in SPLITS),
+                   round(r["seconds"])] for label, r in results.items()])
+    write_result("scenes", "Scenes rendered by Blender's Cycles", [made], results)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from results import table, write_result
 from scipy.ndimage import zoom
 
 from palette_core import decompose
@@ -103,13 +104,16 @@ def main() -> None:
         exact = np.array_equal(hard[outside], original[outside])
         print(f"{args.photo.name} at {SIZE} x {SIZE} ({weights.shape[-1]} weights a pixel); "
               f"outside the hard mask equal to the unedited reconstruction: {exact}")
-        print(f"| recolour | best of {args.repeats} (ms) |\n|---|---|")
-        everywhere = best_seconds(lambda: weights_to_rgb(weights, edited), args.repeats)
-        print(f"| everywhere (weights_to_rgb) | {1000 * everywhere:.1f} |")
+        times = {"everywhere (weights_to_rgb)": best_seconds(
+            lambda: weights_to_rgb(weights, edited), args.repeats)}
         for label, layers in edits.items():
-            seconds = best_seconds(lambda e=layers: recolor_local(
+            times[label] = best_seconds(lambda e=layers: recolor_local(
                 weights, palette, e, "photo", result.stack.basis), args.repeats)
-            print(f"| {label} | {1000 * seconds:.1f} |")
+    made = table(f"{args.photo.name} at {SIZE} x {SIZE}, K = {weights.shape[-1]}",
+                 ["recolour", f"best of {args.repeats} (ms)"],
+                 [[label, round(1000 * seconds, 1)] for label, seconds in times.items()])
+    write_result("selection", "Local edits in photos: a megapixel recoloured", [made],
+                 {"seconds": times, "outside_hard_mask_exact": exact})
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from results import table, write_result
 
 from nerf_stage.simulation import (
     load_scene,
@@ -54,21 +55,14 @@ def noise(scene, n_views: int) -> float:
     return float(np.sqrt(np.mean((a - b) ** 2) / 2) / np.mean((a + b) / 2))
 
 
-def orders_table(n_views: int, depth: int, out: Path) -> None:
+def orders_table(n_views: int, depth: int, out: Path) -> dict:
     base = with_overrides(load_scene("cornell-box"), views=[n_views, 0, 0], max_depth=depth)
     n_full = sum(load_scene("cornell-box").camera.views.values())  # for the stack size
     _, poses = view_poses(base)
     reference = rgb(with_overrides(base, order=depth), poses)
     edited_truth = rgb(with_overrides(with_palette(base, EDITED), order=depth), poses)
     ref_clipped = np.clip(reference, 0, 1)
-    print(f"Cornell box, {n_views} views of {base.camera.width}x{base.camera.height}, "
-          f"{base.render.spp} spp, paths up to {depth} surface vertices; reference keeps every "
-          f"path; stack size for the dataset's {n_full} views")
-    header = (f"{'order':>5} {'terms':>5} {'seconds':>8} {'stack MB':>9} {'RMSE':>7} "
-              f"{'energy left out':>16} {'edit RMSE':>10}")
-    print(header)
-    print("-" * len(header))
-    recoloured = {}
+    recoloured, rows = {}, []
     for order in (0, 1, 2, 3):
         scene = with_overrides(base, order=order)
         start = time.perf_counter()
@@ -81,9 +75,14 @@ def orders_table(n_views: int, depth: int, out: Path) -> None:
         recoloured[order] = weights_to_rgb(sim.weights, EDITED, Basis.TRANSPORT, order)
         edit_rmse = 255 * np.sqrt(np.mean((np.clip(recoloured[order], 0, 1)
                                            - np.clip(edited_truth, 0, 1)) ** 2))
-        print(f"{order:>5} {m:>5} {seconds:>8.2f} {stack_mb:>9.1f} {rmse:>7.2f} "
-              f"{100 * left_out:>15.2f}% {edit_rmse:>10.2f}")
+        rows.append([order, m, round(seconds, 2), round(stack_mb, 1), round(rmse, 2),
+                     f"{100 * left_out:.2f} %", round(edit_rmse, 2)])
     save_figure(reference[0], edited_truth[0], {o: r[0] for o, r in recoloured.items()}, out)
+    return table(f"Cornell box: orders against a reference keeping every path ({n_views} views "
+                 f"of {base.camera.width}x{base.camera.height}, {base.render.spp} spp, up to "
+                 f"{depth} surface vertices; stack size for the dataset's {n_full} views)",
+                 ["order", "terms", "seconds", "stack MB", "RMSE (0-255)", "energy left out",
+                  "edit RMSE"], rows)
 
 
 def save_figure(original, truth, recoloured: dict, out: Path) -> None:
@@ -107,12 +106,8 @@ def save_figure(original, truth, recoloured: dict, out: Path) -> None:
     print(f"saved {path}")
 
 
-def targets_table() -> None:
-    print()
-    header = (f"{'scene':<12} {'views':>5} {'size':>7} {'spp':>5} {'light':>14} {'seconds':>8} "
-              f"{'target':>7} {'noise':>6}")
-    print(header)
-    print("-" * len(header))
+def targets_table() -> dict:
+    rows = []
     for name, limit in TARGET_SECONDS.items():
         scene = load_scene(name)
         start = time.perf_counter()
@@ -120,9 +115,10 @@ def targets_table() -> None:
         seconds = time.perf_counter() - start
         cam, render = scene.camera, scene.render
         light = render.light + (f", n={render.order}" if render.light == "indirect" else "")
-        print(f"{name:<12} {sum(cam.views.values()):>5} {cam.width:>3}x{cam.height:<3} "
-              f"{render.spp:>5} {light:>14} {seconds:>8.1f} {'<' + str(limit):>7} "
-              f"{100 * noise(scene, 8):>5.1f}%")
+        rows.append([name, sum(cam.views.values()), f"{cam.width}x{cam.height}", render.spp,
+                     light, round(seconds, 1), f"< {limit}", f"{100 * noise(scene, 8):.1f} %"])
+    return table("The built-in scenes at their defaults, simulated end to end",
+                 ["scene", "views", "size", "spp", "light", "seconds", "target", "noise"], rows)
 
 
 def main() -> None:
@@ -133,8 +129,8 @@ def main() -> None:
     args = parser.parse_args()
     simulate(with_overrides(load_scene("cornell-box"), resolution=4, spp=1, views=[1, 0, 0]),
              progress=False)  # compile the kernels outside the timings
-    orders_table(args.views, args.depth, args.out)
-    targets_table()
+    tables = [orders_table(args.views, args.depth, args.out), targets_table()]
+    write_result("simulate", "Simulation: light-transport orders and times", tables, {})
 
 
 if __name__ == "__main__":

@@ -29,14 +29,14 @@ test views (``curve`` in the results: training seconds and test PSNR).
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from bench_nerf import scene_run, table
+from bench_nerf import scene_run
 from bench_scenes import checkpoint_curve
 from PIL import Image
+from results import table, write_result
 
 from nerf_stage.backbones import BACKBONES
 from nerf_stage.edit.editing import WeightRender, render_poses
@@ -140,11 +140,11 @@ def main() -> None:
                      ", ".join(map(str, lost)) or "none", scores["seconds"]])
         pictures.append(_view_row(render, dataset, stack))
         print(f"{scene}: {rows[-1]}", flush=True)
-    table(f"Built-in scenes at {'the default budget' if not iters else args.iters} "
-          "(test views)",
-          ["scene", "space", "PSNR", "SSIM", "edit PSNR", "edit response per material",
-           f"lost (< {LOST})", "train s"], rows)
-    (args.out / f"results{name}.json").write_text(json.dumps(results, indent=1))
+    made = table(f"Built-in scenes at {'the default budget' if not iters else args.iters} "
+                 "(test views)",
+                 ["scene", "space", "PSNR", "SSIM", "edit PSNR", "edit response per material",
+                  f"lost (< {LOST})", "train s"], rows)
+    write_result(f"simulated{name}", "Simulated scenes at the defaults", [made], results)
     figure(pictures, args.out / f"simulated{name}.png")
 
 

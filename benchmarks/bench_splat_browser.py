@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import sys
 import time
@@ -39,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_studio import dominant_colour, summary, time_edits  # noqa: E402
+from results import table, write_result  # noqa: E402
 
 from nerf_stage.splats import Splats, render_splats  # noqa: E402
 from palette_core.basis import n_terms  # noqa: E402
@@ -240,8 +240,17 @@ def main() -> None:
         results.update(bake(driver, baked, args))
     finally:
         driver.quit()
-    (args.out / "splat_browser.json").write_text(json.dumps(results, indent=1))
-    print(f"results in {args.out}/splat_browser.json; {args.out}/studio_splats.png: the page "
+    rates = table("frames a second while the camera turns (medians)",
+                  ["splats", "bare viser fps", "studio fps", "studio / bare"],
+                  [[count, round(r["bare"]["fps"], 2), round(r["studio"]["fps"], 2),
+                    round(r["studio"]["fps"] / r["bare"]["fps"], 2)]
+                   for count, r in results["counts"].items()])
+    edits = table("a palette edit's server part (ms)", ["splats", "median", "p90"],
+                  [[count, round(float(np.median(ms)), 2),
+                    round(float(np.percentile(ms, 90)), 2)]
+                   for count, ms in results["edits"].items()])
+    write_result("splat_browser", "Splats in the browser", [rates, edits], results)
+    print(f"{args.out}/studio_splats.png: the page "
           "drawn by the network, then by the splats, from the home camera")
 
 

@@ -23,14 +23,14 @@ view (at ``--scale``).
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from bench_nerf import scene_run, table
+from bench_nerf import scene_run
 from bench_simulated import figure
+from results import table, write_result
 
 from nerf_stage.data.cameras import off_ring_poses
 from nerf_stage.edit.editing import WeightRender, render_poses
@@ -135,12 +135,13 @@ def main() -> None:
                        for k in ("network", "bake")]])
         pictures.append(picture)
         print(f"{scene}: {rows[-1]}", flush=True)
-    table("Splat bakes (PSNR dB against the truth, and of the bake against the network)",
-          ["scene", "splats", "MB", "bake s", "ring: network", "ring: network diffuse",
-           "ring: bake", "ring: bake vs network", "off ring: network",
-           "off ring: network diffuse", "off ring: bake", "off ring: bake vs network",
-           *[f"{v} x{args.scale}: {k}" for v in views for k in ("network", "bake")]], rows)
-    (args.out / "splats.json").write_text(json.dumps(results, indent=1))
+    made = table("Splat bakes (PSNR dB against the truth, and of the bake against the network)",
+                 ["scene", "splats", "MB", "bake s", "ring: network", "ring: network diffuse",
+                  "ring: bake", "ring: bake vs network", "off ring: network",
+                  "off ring: network diffuse", "off ring: bake", "off ring: bake vs network",
+                  *[f"{v} x{args.scale}: {k}" for v in views for k in ("network", "bake")]],
+                 rows)
+    write_result("splats", "Splat bakes against the network and the truth", [made], results)
     figure(pictures, args.out / "splats.png")
 
 

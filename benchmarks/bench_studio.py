@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_collection import mosaic, photos  # noqa: E402
+from results import table, write_result  # noqa: E402
 
 from palette_core.basis import Basis, basis_terms  # noqa: E402
 from palette_core.decompose import decompose  # noqa: E402
@@ -126,6 +127,15 @@ def time_dabs(driver, studio: Studio, index: int, n: int) -> tuple[list[float], 
     return page, server, to_server
 
 
+def latency(rows: list, name: str, values: list[float], target: float | None = None) -> None:
+    """Print ``summary`` and add its row (median, p90, max, target) to ``rows``."""
+    print(summary(name, values, target))
+    values = np.asarray(values)
+    rows.append([name.strip(), round(float(np.median(values)), 1),
+                 round(float(np.percentile(values, 90)), 1), round(float(values.max()), 1),
+                 f"<= {target:g}" if target else ""])
+
+
 def summary(name: str, values: list[float], target: float | None = None) -> str:
     values = np.asarray(values)
     line = (f"{name:<44} median {np.median(values):7.1f}   p90 {np.percentile(values, 90):7.1f}"
@@ -133,7 +143,7 @@ def summary(name: str, values: list[float], target: float | None = None) -> str:
     return line + (f"   (target <= {target:g})" if target else "")
 
 
-def bench_photos(driver, out: Path, n: int) -> None:
+def bench_photos(driver, out: Path, n: int) -> list:
     target = PhotoTarget.open(photo_stack(out / "studio"))
     studio = Studio(target, port=0)
     try:
@@ -143,18 +153,20 @@ def bench_photos(driver, out: Path, n: int) -> None:
         index = dominant_colour(studio.editor.palette, target.weights(0))
         page, server = time_edits(driver, studio, index, n)
         h, w = target.weights(0).shape[:2]
-        print(summary(f"photo {w}x{h}: change -> new frame (ms)", page, 100))
-        print(summary("  of which server recolour + encode (ms)", server))
+        rows = []
+        latency(rows, f"photo {w}x{h}: change -> new frame (ms)", page, 100)
+        latency(rows, "  of which server recolour + encode (ms)", server)
         page, server, to_server = time_dabs(driver, studio, index, n)
-        print(summary(f"photo {w}x{h}: brush dab -> new frame (ms)", page))
-        print(summary("  selenium click -> at the server (ms)", to_server))
-        print(summary("  server paint + recolour + encode (ms)", server, 50))
+        latency(rows, f"photo {w}x{h}: brush dab -> new frame (ms)", page)
+        latency(rows, "  selenium click -> at the server (ms)", to_server)
+        latency(rows, "  server paint + recolour + encode (ms)", server, 50)
         driver.save_screenshot(str(out / "studio_photos.png"))
     finally:
         studio.stop()
+    return rows
 
 
-def bench_scene(driver, run: Path, out: Path, n: int) -> None:
+def bench_scene(driver, run: Path, out: Path, n: int) -> list:
     target = SceneTarget.open(run, bake=False)
     studio = Studio(target, port=0)
     try:
@@ -167,8 +179,9 @@ def bench_scene(driver, run: Path, out: Path, n: int) -> None:
                                 target.run.basis, target.run.order)
         page, server = time_edits(driver, studio, index, n)
         h, w = view.render.weights.shape[1:3]
-        print(summary(f"scene {w}x{h}: change -> new frame (ms)", page, 50))
-        print(summary("  of which server recolour + encode (ms)", server))
+        rows = []
+        latency(rows, f"scene {w}x{h}: change -> new frame (ms)", page, 50)
+        latency(rows, "  of which server recolour + encode (ms)", server)
         driver.save_screenshot(str(out / "studio_scene.png"))
         refined = []
         pose = camera_pose(view.client.camera)
@@ -185,9 +198,10 @@ def bench_scene(driver, run: Path, out: Path, n: int) -> None:
                                     and view.drawn[1] > since, timeout=30):
                 raise RuntimeError("no refined view within 30 s")
             refined.append(view.drawn[1] - start)
-        print(summary("scene: camera moved -> refined view sent (s)", refined, 1))
+        latency(rows, "scene: camera moved -> refined view sent (s)", refined, 1)
     finally:
         studio.stop()
+    return rows
 
 
 def main() -> None:
@@ -205,13 +219,16 @@ def main() -> None:
     driver = browser.chromium(width, height)
     print(f"headless Chromium, window {width}x{height}")
     try:
-        bench_photos(driver, out, args.n)
+        rows = bench_photos(driver, out, args.n)
         if Path(args.run).is_dir():
-            bench_scene(driver, Path(args.run), out, args.n)
+            rows += bench_scene(driver, Path(args.run), out, args.n)
         else:
             print(f"no run at {args.run}: scene mode skipped (make demo trains one)")
     finally:
         driver.quit()
+    made = table(f"{args.n} edits in headless Chromium at {args.window}",
+                 ["measured", "median", "p90", "max", "target"], rows)
+    write_result("studio", "The studio's latency in a browser", [made], {"rows": rows})
     print(f"screenshots in {out}/studio_*.png")
 
 

@@ -14,14 +14,13 @@ the photo's size (the issue's bound compares these two).
     python benchmarks/bench_studio_fidelity.py --run RUN [--out benchmarks/out]
         [--window 800x480]
 
-Writes ``OUT/studio_fidelity.json`` and ``OUT/studio_fidelity.png`` (per row: the page,
-the render, the error x4).
+Writes ``benchmarks/results/studio_fidelity.json`` and ``OUT/studio_fidelity.png`` (per
+row: the page, the render, the error x4).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import replace
@@ -31,6 +30,8 @@ import numpy as np
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from results import table, write_result  # noqa: E402
 
 from nerf_stage.train.metrics import psnr  # noqa: E402
 from studio.app import Studio  # noqa: E402
@@ -112,10 +113,17 @@ def main() -> None:
                                        1))
     finally:
         driver.quit()
-    (args.out / "studio_fidelity.json").write_text(json.dumps(results, indent=1))
+    made = table(f"{results['splats']} splats at {args.window} (PSNR dB)",
+                 ["splats' weights", "page against render", "page against the photo",
+                  "render against the photo"],
+                 [[name, round(r["page_vs_render"], 2), round(r["page_vs_truth"], 2),
+                   round(r["render_vs_truth"], 2)] for name, r in results.items()
+                  if isinstance(r, dict)])
+    write_result("studio_fidelity", "What the studio draws against nerf-stage render", [made],
+                 results)
     Image.fromarray((np.concatenate(rows) * 255).round().astype(np.uint8)).save(
         args.out / "studio_fidelity.png")
-    print(f"results in {args.out}/studio_fidelity.json and .png (page | render | error x4)")
+    print(f"picture in {args.out}/studio_fidelity.png (page | render | error x4)")
 
 
 if __name__ == "__main__":

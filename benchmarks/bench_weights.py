@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import skimage.data
+from results import table, write_result
 
 from palette_core import WEIGHT_METHODS, ColourSet, LoadedImage, extract_palette, image_weights
 
@@ -69,11 +70,7 @@ def main() -> None:
     for method in WEIGHT_METHODS:  # compile the numba kernels before timing
         measure(method, warm_set, warm, extract_palette(warm_set.colours, warm_set.counts, 4))
 
-    header = (f"{'photo':<10} {'Mpx':>5} {'K':>2} {'method':<6} {'RMSE':>7} {'w>1/255':>7} "
-              f"{'<=3 col':>7} {'grad':>7} {'time s':>7} {'peak MiB':>8}")
-    print(header)
-    print("-" * len(header))
-    figure = {}
+    figure, rows, results = {}, [], []
     for name in args.photos:
         pixels = getattr(skimage.data, name)()[..., :3]
         image = LoadedImage(name, pixels, np.ones(pixels.shape[:2], bool))
@@ -82,12 +79,20 @@ def main() -> None:
             poly = extract_palette(colour_set.colours, colour_set.counts, k)
             for method in WEIGHT_METHODS:
                 row, weights = measure(method, colour_set, image, poly)
-                print(f"{name:<10} {pixels.shape[0] * pixels.shape[1] / 1e6:>5.2f} "
-                      f"{len(poly.vertices):>2} {method:<6} {row['rmse']:>7.3f} "
-                      f"{row['active']:>7.2f} {row['at_most_3']:>7.1%} "
-                      f"{row['gradient']:>7.4f} {row['seconds']:>7.2f} {row['peak_mib']:>8.0f}")
+                megapixels = pixels.shape[0] * pixels.shape[1] / 1e6
+                print(f"{name} K={len(poly.vertices)} {method}: {row}", flush=True)
+                results.append({"photo": name, "megapixels": megapixels,
+                                "k": len(poly.vertices), "method": method, **row})
+                rows.append([name, round(megapixels, 2), len(poly.vertices), method,
+                             round(row["rmse"], 3), round(row["active"], 2),
+                             f"{row['at_most_3']:.1%}", round(row["gradient"], 4),
+                             round(row["seconds"], 2), round(row["peak_mib"])])
                 if name == args.figure_photo and k == 6:
                     figure[method] = (weights, poly.vertices)
+    made = table("MVC against RGBXY", ["photo", "Mpx", "K", "method", "RMSE (0-255)",
+                                       "weights > 1/255", "<= 3 colours", "gradient",
+                                       "seconds", "peak MiB"], rows)
+    write_result("weights", "Weights: MVC against RGBXY", [made], {"rows": results})
     if figure:
         save_figure(figure, args.figure_photo, Path(args.out))
 

@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+from results import markdown
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 PAGE = ROOT / "docs" / "results.md"
@@ -28,25 +30,17 @@ def render(results: Path = RESULTS) -> str:
     sections = [HEADER]
     for path in sorted(results.glob("*.json")):
         record = json.loads(path.read_text())
-        table, machine = record["table"], record["machine"]
+        machine = record["machine"]
         on = f"{machine['cpu']}, {machine['cores']} cores, {machine['memory_gb']} GB"
         if machine.get("gpu"):
             on += f", {machine['gpu']}"
         libraries = ", ".join(f"{k} {v}" for k, v in record["versions"].items())
-        lines = [f"## {record['title']}", "",
-                 "| " + " | ".join(table["columns"]) + " |",
-                 "|" + "---|" * len(table["columns"])]
-        lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in table["rows"]]
-        lines += ["", f"`{record['command']}` at `{record['commit']}` on {record['date']}; "
+        lines = [f"## {record['title']}", ""]
+        lines += [markdown(made, "###") for made in record["tables"]]
+        lines += [f"`{record['command']}` at `{record['commit']}` on {record['date']}; "
                   f"{on}; {libraries}. Data: `benchmarks/results/{path.name}`."]
         sections.append("\n".join(lines) + "\n")
     return "\n".join(sections)
-
-
-def _cell(value) -> str:
-    if isinstance(value, float):
-        return f"{value:.3g}" if abs(value) < 1e4 else f"{value:.3e}"
-    return str(value)
 
 
 def main() -> int:

@@ -3,7 +3,8 @@ scores, the command that made them, the commit, the machine, the library version
 date), and ``report.py`` renders the tables of ``docs/results.md`` from those files alone
 (gsplat's ``stats/*.json``; nerfacc's "updated on DATE with nerfacc==X").
 
-A result's ``table`` is what the page shows: ``{"columns": [...], "rows": [[...], ...]}``.
+A result's ``tables`` are what the page shows, each ``{"title", "columns", "rows"}`` as
+``table`` makes them (and prints, as markdown, while the benchmark runs).
 """
 
 from __future__ import annotations
@@ -71,17 +72,44 @@ def commit() -> str:
     return head + ("+changes" if dirty else "")
 
 
-def write_result(name: str, results: dict, table: dict, title: str) -> Path:
-    """Write ``results/NAME.json``: ``results`` (any JSON), the ``table`` the page shows under
-    ``title``, and how they were made (``sys.argv``, ``commit``, ``machine``, ``versions``,
-    the date); written whole, then renamed into place."""
+def table(title: str, columns: list[str], rows: list[list]) -> dict:
+    """A table of a result, printed now as markdown; numpy scalars become plain numbers."""
+    made = {"title": title, "columns": list(columns),
+            "rows": [[_plain(value) for value in row] for row in rows]}
+    print("\n" + markdown(made, "###"))
+    return made
+
+
+def markdown(made: dict, heading: str) -> str:
+    """A ``table`` as markdown under its title."""
+    lines = [f"{heading} {made['title']}", "", "| " + " | ".join(made["columns"]) + " |",
+             "|" + "---|" * len(made["columns"])]
+    lines += ["| " + " | ".join(_cell(value) for value in row) + " |" for row in made["rows"]]
+    return "\n".join(lines) + "\n"
+
+
+def _plain(value):
+    return value.item() if hasattr(value, "item") else value
+
+
+def _cell(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.3g}" if abs(value) < 1e4 else f"{value:.3e}"
+    return str(value)
+
+
+def write_result(name: str, title: str, tables: list[dict], results: dict) -> Path:
+    """Write ``results/NAME.json``: the ``tables`` the page shows under ``title``, the
+    ``results`` behind them (any JSON), and how they were made (``sys.argv``, ``commit``,
+    ``machine``, ``versions``, the date); written whole, then renamed into place."""
     RESULTS.mkdir(exist_ok=True)
     record = {"name": name, "title": title, "command": " ".join(["python", *sys.argv]),
               "commit": commit(), "date": datetime.date.today().isoformat(),
-              "machine": machine(), "versions": versions(), "table": table,
+              "machine": machine(), "versions": versions(), "tables": tables,
               "results": results}
     path = RESULTS / f"{name}.json"
     staged = path.with_suffix(".json.part")
-    staged.write_text(json.dumps(record, indent=1) + "\n")
+    staged.write_text(json.dumps(record, indent=1, default=_plain) + "\n")
     staged.replace(path)
+    print(f"wrote {path}")
     return path
