@@ -48,7 +48,8 @@ Writes ``benchmarks/results/captures.json`` (every capture and method in OUT so 
 views: truth | render | absolute error x4 | for ours, how many training views see each
 pixel's surface, black for none, white for four or more: ``views_seeing``, whose PSNR by
 count the results hold as ``by_views_seeing``) and ``OUT/NAME-curve.png`` (held-out PSNR
-against training time: our runs' checkpoints, nerfacto's end). Runs are cached in OUT by capture and method.
+against training time: our runs' checkpoints, nerfacto's end). Runs are cached in OUT by
+capture and method.
 """
 
 from __future__ import annotations
