@@ -12,13 +12,13 @@ EDGE_TOL = 1e-10
 
 #: A colour closer than this to a face plane (and inside the face) takes
 #: barycentric weights of the face, reproducing it to within this distance;
-#: farther away the mean-vector form of MVC in ``geometry_kernels.py`` stays accurate.
+#: farther away the mean-vector form of MVC in ``kernels/mean_value.py`` stays accurate.
 FACE_TOL = 1e-10
 
 #: A colour whose signed distance to every face plane is below this is inside.
 INSIDE_TOL = 1e-12
 
-#: The edge-collapse LPs of hull simplification (``geometry_kernels.collapse_points``):
+#: The edge-collapse LPs of hull simplification (``kernels.collapse_lp.collapse_points``):
 #: a point counts as outside a facet plane when n . v + offset >= -LP_FEASIBILITY_TOL,
 #: a basis as optimal when its dual weights are >= -LP_OPTIMALITY_TOL, and as singular
 #: when a pivot (for three variables, its determinant) is below LP_PIVOT_TOL (its rows

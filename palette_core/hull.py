@@ -9,7 +9,7 @@ still encloses all colours. With unit outward facet normals n_f, offsets o_f
     minimise   sum_f A_f (n_f . v + o_f) / d     over the facets f touching a or b
     subject to n_f . v + o_f >= 0                for the same facets,
 
-solved exactly in ``geometry_kernels.collapse_points`` by enumerating the bases of
+solved exactly in ``collapse_lp.collapse_points`` by enumerating the bases of
 these few rows (an edge has a dozen facets around it: microseconds an LP, where a
 general solver's call costs more than all of them). The cheapest edge collapses, the
 hull is recomputed, and so on. An edge's LP depends only on the facets around its two
@@ -29,8 +29,8 @@ from collections.abc import Iterator
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from . import geometry_kernels
 from .errors import InputError
+from .kernels import collapse_lp
 from .polytope import Polytope, polytope_from_points, polytope_rmse
 
 _MIX = np.uint64(0x9E3779B97F4A7C15)
@@ -174,7 +174,7 @@ def _facets_touching(facets: np.ndarray, n_ids: int) -> list[list[int]]:
 
 
 def _solve_collapses(blocks, normals, offsets, measures, box, penalty) -> list[tuple]:
-    """The collapse LP of each block of facets (``geometry_kernels.collapse_points``):
+    """The collapse LP of each block of facets (``collapse_lp.collapse_points``):
     [(slack, added volume, point)], all NaN where the edge cannot collapse with every
     colour kept inside and ``penalty`` is 0 (its least slack not asked for)."""
     if not blocks:
@@ -183,7 +183,7 @@ def _solve_collapses(blocks, normals, offsets, measures, box, penalty) -> list[t
     rows = np.concatenate(blocks)
     starts = np.cumsum([0] + [len(block) for block in blocks])
     solution = np.empty((len(blocks), d + 1))
-    geometry_kernels.collapse_points(np.ascontiguousarray(normals), np.ascontiguousarray(offsets),
+    collapse_lp.collapse_points(np.ascontiguousarray(normals), np.ascontiguousarray(offsets),
                                      measures, rows, starts, box, penalty, solution)
     v, slack = solution[:, :d], solution[:, d]
     block_of_row = np.repeat(np.arange(len(blocks)), np.diff(starts))

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from . import geometry_kernels
 from .errors import InputError
+from .kernels import mean_value
 from .polytope import Polytope, project_to_polytope
 
 
@@ -62,10 +62,10 @@ def rgb_to_mvc_weights(rgb: np.ndarray, poly: Polytope) -> np.ndarray:
     if poly.dim == 3:
         normals, offsets = poly.planes
         n_chunks = min(len(local), 64 * numba.get_num_threads())
-        geometry_kernels.mvc_polyhedron(local, corners, poly.faces, normals, offsets, n_chunks,
+        mean_value.mvc_polyhedron(local, corners, poly.faces, normals, offsets, n_chunks,
                                         weights)
     elif poly.dim == 2:
-        geometry_kernels.mvc_polygon(local, corners, weights)
+        mean_value.mvc_polygon(local, corners, weights)
     elif poly.dim == 1:
         t = (local[:, 0] - corners[0, 0]) / (corners[1, 0] - corners[0, 0])
         weights[:, 0], weights[:, 1] = 1.0 - t, t

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from . import geometry_kernels
 from .constants import RANK_TOL
+from .kernels import closest_points
 
 
 @dataclass(frozen=True)
@@ -144,9 +144,9 @@ def project_to_polytope(colours: np.ndarray, poly: Polytope) -> np.ndarray:
     out = np.empty_like(local)
     if poly.dim == 3:
         normals, offsets = poly.planes
-        geometry_kernels.project_to_polyhedron(local, ends, poly.faces, normals, offsets, out)
+        closest_points.project_to_polyhedron(local, ends, poly.faces, normals, offsets, out)
     elif poly.dim == 2:
-        geometry_kernels.project_to_polygon(local, np.ascontiguousarray(ends), out)
+        closest_points.project_to_polygon(local, np.ascontiguousarray(ends), out)
     elif poly.dim == 1:
         out[:] = np.clip(local, ends.min(), ends.max())
     return out

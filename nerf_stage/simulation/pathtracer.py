@@ -324,13 +324,6 @@ def trace_view(c2w, focal, width, height, spp, max_depth, split, seed, view_id, 
     out : (H * W, M, 3) zeroed, receives the mean contribution per term.
     coverage : (H * W,) zeroed, receives the fraction of camera rays that hit geometry.
     """
-    prim_kind, prim_data, prim_mat, groups = (
-        scene.prim_kind, scene.prim_data, scene.prim_mat, scene.groups)
-    mat_albedo, mat_texture, mat_tex_scale, mat_palette, mat_emission = (
-        scene.mat_albedo, scene.mat_texture, scene.mat_tex_scale, scene.mat_palette,
-        scene.mat_emission)
-    tex_info, tex_pixels = scene.tex_info, scene.tex_pixels
-    area_lights, point_lights = scene.area_lights, scene.point_lights
     n_pixels = width * height
     grid = int(math.sqrt(spp))
     while (grid + 1) * (grid + 1) <= spp:
@@ -339,107 +332,140 @@ def trace_view(c2w, focal, width, height, spp, max_depth, split, seed, view_id, 
         row, col = pixel // width, pixel % width
         pixel_key = _mix(np.uint64(seed) * _GOLDEN64
                          + np.uint64(view_id) * np.uint64(n_pixels) + np.uint64(pixel))
-        _, perms = _shuffled_strata(pixel_key, 1 + max_depth * (area_lights.shape[0] + 1), spp)
-        surf = np.empty(5)
-        albedo = np.empty(3)
+        n_pairs = 1 + max_depth * (scene.area_lights.shape[0] + 1)
+        _, perms = _shuffled_strata(pixel_key, n_pairs, spp)
         acc = out[pixel]
+        surf, albedo = np.empty(5), np.empty(3)
         hits = 0
         for sample in range(spp):
             # each path has its own stream: paths cut short elsewhere do not shift it
             state = _mix(pixel_key + np.uint64(sample + 1) * _GOLDEN64)
             state, jx, jy = _sample2d(state, perms, 0, sample, grid)
-            pair = 1
-            cx = (col + jx - 0.5 * width) / focal
-            cy = -(row + jy - 0.5 * height) / focal
-            dx = c2w[0, 0] * cx + c2w[0, 1] * cy - c2w[0, 2]
-            dy = c2w[1, 0] * cx + c2w[1, 1] * cy - c2w[1, 2]
-            dz = c2w[2, 0] * cx + c2w[2, 1] * cy - c2w[2, 2]
-            norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-            dx, dy, dz = dx / norm, dy / norm, dz / norm
-            ox, oy, oz = c2w[0, 3], c2w[1, 3], c2w[2, 3]
-            t, k = _closest_hit(prim_kind, prim_data, groups, ox, oy, oz, dx, dy, dz, np.inf)
-            if k < 0:
-                continue
-            hits += 1
-            term = 0
-            r, g, b = 1.0, 1.0, 1.0
-            for depth in range(max_depth):
-                px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
-                _surface(prim_kind[k], prim_data[k], px, py, pz, surf)
-                nx, ny, nz = surf[0], surf[1], surf[2]
-                facing = _dot(nx, ny, nz, dx, dy, dz) < 0.0
-                if not facing:
-                    nx, ny, nz = -nx, -ny, -nz
-                mat = prim_mat[k]
-                slot = term if split else 0
-                if depth == 0 and facing:
-                    acc[slot, 0] += r * mat_emission[mat, 0]
-                    acc[slot, 1] += g * mat_emission[mat, 1]
-                    acc[slot, 2] += b * mat_emission[mat, 2]
-                _albedo(mat, surf[3], surf[4], mat_albedo, mat_texture, mat_tex_scale,
-                        tex_info, tex_pixels, albedo)
-                entry = mat_palette[mat]
-                if entry >= 0:
-                    term = next_term[term, entry]
-                    if term < 0:
-                        break
-                    if not split:
-                        r, g, b = r * albedo[0], g * albedo[1], b * albedo[2]
-                else:
-                    if albedo[0] == 0.0 and albedo[1] == 0.0 and albedo[2] == 0.0:
-                        break
-                    r, g, b = r * albedo[0], g * albedo[1], b * albedo[2]
-                slot = term if split else 0
-                sx, sy, sz = px + RAY_OFFSET * nx, py + RAY_OFFSET * ny, pz + RAY_OFFSET * nz
-                for li in range(area_lights.shape[0]):
-                    light = area_lights[li]
-                    state, u1, u2 = _sample2d(state, perms, pair, sample, grid)
-                    pair += 1
-                    lx, ly, lz, dist2, cos_s = _toward(
-                        sx, sy, sz, nx, ny, nz, light[0] + u1 * light[3] + u2 * light[6],
-                        light[1] + u1 * light[4] + u2 * light[7],
-                        light[2] + u1 * light[5] + u2 * light[8])
-                    cos_l = -_dot(light[9], light[10], light[11], lx, ly, lz)
-                    if cos_s <= 0.0 or cos_l <= 0.0 or _occluded(
-                            prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz,
-                            math.sqrt(dist2) * (1.0 - SHADOW_SLACK)):
-                        continue
-                    f = cos_s * cos_l * light[12] / (math.pi * dist2)
-                    acc[slot, 0] += r * f * light[13]
-                    acc[slot, 1] += g * f * light[14]
-                    acc[slot, 2] += b * f * light[15]
-                for li in range(point_lights.shape[0]):
-                    light = point_lights[li]
-                    lx, ly, lz, dist2, cos_s = _toward(sx, sy, sz, nx, ny, nz,
-                                                       light[0], light[1], light[2])
-                    if cos_s <= 0.0 or _occluded(
-                            prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz,
-                            math.sqrt(dist2) * (1.0 - SHADOW_SLACK)):
-                        continue
-                    f = cos_s / (math.pi * dist2)
-                    acc[slot, 0] += r * f * light[3]
-                    acc[slot, 1] += g * f * light[4]
-                    acc[slot, 2] += b * f * light[5]
-                if depth + 1 == max_depth:
-                    break
-                # cosine-weighted direction about n: the albedo is the whole throughput
-                state, u1, u2 = _sample2d(state, perms, pair, sample, grid)
-                pair += 1
-                radius, phi = math.sqrt(u1), 2.0 * math.pi * u2
-                lx, ly, lz = radius * math.cos(phi), radius * math.sin(phi), math.sqrt(1.0 - u1)
-                sign = 1.0 if nz >= 0.0 else -1.0
-                a = -1.0 / (sign + nz)
-                bb = nx * ny * a
-                dx = lx * (1.0 + sign * nx * nx * a) + ly * bb + lz * nx
-                dy = lx * (sign * bb) + ly * (sign + ny * ny * a) + lz * ny
-                dz = lx * (-sign * nx) + ly * (-ny) + lz * nz
-                norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-                dx, dy, dz = dx / norm, dy / norm, dz / norm
-                ox, oy, oz = sx, sy, sz
-                t, k = _closest_hit(prim_kind, prim_data, groups, ox, oy, oz, dx, dy, dz, np.inf)
-                if k < 0:
-                    break
+            ray = _camera_ray(c2w, focal, width, height, col + jx, row + jy)
+            hits += _trace_path(scene, next_term, split, max_depth, ray, state, perms, sample,
+                                grid, acc, surf, albedo)
         for m in range(acc.shape[0]):
             for c in range(3):
                 acc[m, c] /= spp
         coverage[pixel] = hits / spp
+
+
+@njit(cache=True, inline="always")
+def _camera_ray(c2w, focal, width, height, x, y):
+    """(ox, oy, oz, dx, dy, dz): the camera ray through image point (x, y), unit direction."""
+    cx = (x - 0.5 * width) / focal
+    cy = -(y - 0.5 * height) / focal
+    dx = c2w[0, 0] * cx + c2w[0, 1] * cy - c2w[0, 2]
+    dy = c2w[1, 0] * cx + c2w[1, 1] * cy - c2w[1, 2]
+    dz = c2w[2, 0] * cx + c2w[2, 1] * cy - c2w[2, 2]
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return c2w[0, 3], c2w[1, 3], c2w[2, 3], dx / norm, dy / norm, dz / norm
+
+
+@njit(cache=True, inline="always")
+def _trace_path(scene, next_term, split, max_depth, ray, state, perms, sample, grid, acc,
+                surf, albedo):
+    """Follow one path from the camera ray ``ray``, adding its light at each surface vertex
+    to ``acc`` (M, 3) by transport term (or to term 0 when not ``split``); ``surf`` (5,) and
+    ``albedo`` (3,) are scratch. Returns 1 when the camera ray hits geometry, else 0."""
+    prim_kind, prim_data, prim_mat, groups = (
+        scene.prim_kind, scene.prim_data, scene.prim_mat, scene.groups)
+    ox, oy, oz, dx, dy, dz = ray
+    t, k = _closest_hit(prim_kind, prim_data, groups, ox, oy, oz, dx, dy, dz, np.inf)
+    if k < 0:
+        return 0
+    pair = 1
+    term = 0
+    r, g, b = 1.0, 1.0, 1.0
+    for depth in range(max_depth):
+        px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+        _surface(prim_kind[k], prim_data[k], px, py, pz, surf)
+        nx, ny, nz = surf[0], surf[1], surf[2]
+        facing = _dot(nx, ny, nz, dx, dy, dz) < 0.0
+        if not facing:
+            nx, ny, nz = -nx, -ny, -nz
+        mat = prim_mat[k]
+        slot = term if split else 0
+        if depth == 0 and facing:
+            acc[slot, 0] += r * scene.mat_emission[mat, 0]
+            acc[slot, 1] += g * scene.mat_emission[mat, 1]
+            acc[slot, 2] += b * scene.mat_emission[mat, 2]
+        _albedo(mat, surf[3], surf[4], scene.mat_albedo, scene.mat_texture,
+                scene.mat_tex_scale, scene.tex_info, scene.tex_pixels, albedo)
+        entry = scene.mat_palette[mat]
+        if entry >= 0:
+            term = next_term[term, entry]
+            if term < 0:
+                break
+            if not split:
+                r, g, b = r * albedo[0], g * albedo[1], b * albedo[2]
+        else:
+            if albedo[0] == 0.0 and albedo[1] == 0.0 and albedo[2] == 0.0:
+                break
+            r, g, b = r * albedo[0], g * albedo[1], b * albedo[2]
+        sx, sy, sz = px + RAY_OFFSET * nx, py + RAY_OFFSET * ny, pz + RAY_OFFSET * nz
+        state, pair = _direct_light(scene, sx, sy, sz, nx, ny, nz, r, g, b, state, perms,
+                                    pair, sample, grid, acc[term if split else 0])
+        if depth + 1 == max_depth:
+            break
+        state, u1, u2 = _sample2d(state, perms, pair, sample, grid)
+        pair += 1
+        dx, dy, dz = _cosine_direction(nx, ny, nz, u1, u2)
+        ox, oy, oz = sx, sy, sz
+        t, k = _closest_hit(prim_kind, prim_data, groups, ox, oy, oz, dx, dy, dz, np.inf)
+        if k < 0:
+            break
+    return 1
+
+
+@njit(cache=True, inline="always")
+def _direct_light(scene, sx, sy, sz, nx, ny, nz, r, g, b, state, perms, pair, sample, grid,
+                  acc):
+    """Next-event estimation at the shading point s (normal n): each area light sampled at
+    one stratified point and each point light, added to ``acc`` (3,) times the throughput
+    (r, g, b) where unoccluded. Returns the stream's state and its next pair."""
+    prim_kind, prim_data, groups = scene.prim_kind, scene.prim_data, scene.groups
+    for li in range(scene.area_lights.shape[0]):
+        light = scene.area_lights[li]
+        state, u1, u2 = _sample2d(state, perms, pair, sample, grid)
+        pair += 1
+        lx, ly, lz, dist2, cos_s = _toward(
+            sx, sy, sz, nx, ny, nz, light[0] + u1 * light[3] + u2 * light[6],
+            light[1] + u1 * light[4] + u2 * light[7],
+            light[2] + u1 * light[5] + u2 * light[8])
+        cos_l = -_dot(light[9], light[10], light[11], lx, ly, lz)
+        if cos_s <= 0.0 or cos_l <= 0.0 or _occluded(
+                prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz,
+                math.sqrt(dist2) * (1.0 - SHADOW_SLACK)):
+            continue
+        f = cos_s * cos_l * light[12] / (math.pi * dist2)
+        acc[0] += r * f * light[13]
+        acc[1] += g * f * light[14]
+        acc[2] += b * f * light[15]
+    for li in range(scene.point_lights.shape[0]):
+        light = scene.point_lights[li]
+        lx, ly, lz, dist2, cos_s = _toward(sx, sy, sz, nx, ny, nz, light[0], light[1], light[2])
+        if cos_s <= 0.0 or _occluded(prim_kind, prim_data, groups, sx, sy, sz, lx, ly, lz,
+                                     math.sqrt(dist2) * (1.0 - SHADOW_SLACK)):
+            continue
+        f = cos_s / (math.pi * dist2)
+        acc[0] += r * f * light[3]
+        acc[1] += g * f * light[4]
+        acc[2] += b * f * light[5]
+    return state, pair
+
+
+@njit(cache=True, inline="always")
+def _cosine_direction(nx, ny, nz, u1, u2):
+    """A cosine-weighted unit direction about the unit normal n for the uniform pair (u1,
+    u2), in the orthonormal basis of Duff et al. (2017): the albedo is the whole throughput."""
+    radius, phi = math.sqrt(u1), 2.0 * math.pi * u2
+    lx, ly, lz = radius * math.cos(phi), radius * math.sin(phi), math.sqrt(1.0 - u1)
+    sign = 1.0 if nz >= 0.0 else -1.0
+    a = -1.0 / (sign + nz)
+    bb = nx * ny * a
+    dx = lx * (1.0 + sign * nx * nx * a) + ly * bb + lz * nx
+    dy = lx * (sign * bb) + ly * (sign + ny * ny * a) + lz * ny
+    dz = lx * (-sign * nx) + ly * (-ny) + lz * nz
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return dx / norm, dy / norm, dz / norm
