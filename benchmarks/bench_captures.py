@@ -56,10 +56,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import shlex
-import subprocess
 import sys
 import tempfile
 import time
@@ -67,6 +65,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_scenes import Snapshots, checkpoint_curve, curve_picture, error_map, rendered
+from nerfacto import nerfacto, run_command
 from PIL import Image
 from results import table, write_result
 
@@ -93,49 +92,6 @@ HEADROOM = 10.0
 SEEN_DEPTH = 1.05
 PRETRAIN_SHARE = TrainConfig().pretrain_iters / TrainConfig().total_iters
 BIN = Path(sys.executable).parent
-NERFSTUDIO = ("torch==2.14.1", "torchvision==0.29.1", "nerfstudio")
-#: What nerfacto's venv imports at every start, through a ``.pth`` file (a
-#: ``sitecustomize.py`` would lose to a system one), as ``bench_hooks.py``:
-#: - nerfacto's model builds an LPIPS metric whose AlexNet weights torchvision downloads;
-#:   with no network here it gets one that returns NaN (a metric only);
-#: - with ``BENCH_SECONDS`` set, ns-train's trainer saves its checkpoint and ends at the
-#:   first iteration that starts after that many seconds of training, and says how many
-#:   iterations it trained (``CLOCK_LINE``).
-#: Training and the renders are nerfacto's own.
-BENCH_HOOKS = """import os
-import sys
-import time
-
-import torch
-import torchmetrics.image.lpip as lpip
-
-
-class NoLPIPS(torch.nn.Module):
-    def forward(self, a, b):
-        return torch.tensor(float("nan"))
-
-
-lpip.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: NoLPIPS()
-
-if os.environ.get("BENCH_SECONDS"):
-    from nerfstudio.engine.trainer import Trainer
-
-    budget, train_iteration = float(os.environ["BENCH_SECONDS"]), Trainer.train_iteration
-
-    def clocked(self, step):
-        if not hasattr(self, "bench_start"):
-            self.bench_start, self.bench_first = time.perf_counter(), step
-        elapsed = time.perf_counter() - self.bench_start
-        if elapsed >= budget:
-            self.save_checkpoint(step - 1)
-            print(f"bench clock: {step - self.bench_first} iterations in {elapsed:.3f} s",
-                  flush=True)
-            sys.exit(0)
-        return train_iteration(self, step)
-
-    Trainer.train_iteration = clocked
-"""
-CLOCK_LINE = re.compile(r"bench clock: (\d+) iterations in ([\d.]+) s")
 
 
 def posed(source: Path, out: Path) -> Path:
@@ -143,7 +99,7 @@ def posed(source: Path, out: Path) -> Path:
     if (source / "transforms.json").is_file():
         return source
     if not (out / "transforms.json").is_file():
-        _run([BIN / "nerf-stage", "poses", source, "-o", out, "--force"], "poses")
+        run_command([BIN / "nerf-stage", "poses", source, "-o", out, "--force"], "poses")
     return out
 
 
@@ -203,9 +159,8 @@ def small_capture(capture: Path, out: Path, downscale: int) -> Path:
             "frames": frames, "train_filenames": splits["train"],
             "val_filenames": splits["test"], "test_filenames": splits["test"], **points},
             indent=1))
-        _run([BIN / "palette-decompose", out / "images", "-k", "6", "-o", out / "weights.npz",
-              "--force"],
-             "decompose")
+        run_command([BIN / "palette-decompose", out / "images", "-k", "6", "-o",
+                     out / "weights.npz", "--force"], "decompose")
     return out
 
 
@@ -307,7 +262,7 @@ def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, pretrain
     """``nerf-stage train`` for ``pretrain`` and ``finetune`` iterations within ``minutes``
     (0: no limit), pretraining within ``share`` of them, with a checkpoint ``every`` so many
     iterations and more ``options``; its output (``_run``)."""
-    return _run([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
+    return run_command([BIN / "nerf-stage", "train", data_dir, "-o", run_dir, "--force",
                  "--strategy", strategy, "--backbone", backbone,
                  "--pretrain-iters", str(max(1, round(pretrain))),
                  "--finetune-iters", str(max(1, round(finetune))),
@@ -316,77 +271,15 @@ def _train(data_dir: Path, run_dir: Path, strategy: str, backbone: str, pretrain
                 f"train {strategy}", log)
 
 
-def nerfacto_venv(venv: Path) -> Path:
-    """The ``bin`` folder of a virtual environment with nerfstudio, created when missing."""
-    if not (venv / "bin" / "ns-train").is_file():
-        subprocess.run([sys.executable, "-m", "venv", venv], check=True)
-        for package in (NERFSTUDIO[:2], NERFSTUDIO[2:]):  # torch first, as pinned
-            subprocess.run([venv / "bin" / "pip", "install", "-q", *package], check=True)
-    site = next(venv.glob("lib/python*/site-packages"))
-    (site / "bench_hooks.py").write_text(BENCH_HOOKS)
-    (site / "bench_hooks.pth").write_text("import bench_hooks\n")
-    return venv / "bin"
-
-
-def nerfacto(data_dir: Path, run_dir: Path, seconds: float, venv: Path) -> dict:
-    """Train nerfacto on ``data_dir`` for ``seconds`` of training (``BENCH_HOOKS``); its
-    renders of the held-out views, iterations and training seconds."""
-    bin_dir = nerfacto_venv(venv)
-    if not (run_dir / "result.json").is_file():
-        run_dir.mkdir(parents=True, exist_ok=True)
-        config, iterations, trained = _nerfacto_train(bin_dir, data_dir, run_dir / "train",
-                                                      seconds, run_dir / "train.log")
-        renders = config.parent / "renders"  # beside the config ns-train just made
-        _run([bin_dir / "ns-eval", "--load-config", config, "--output-path",
-              run_dir / "eval.json", "--render-output-path", renders], "ns-eval",
-             TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD="1")  # its own checkpoint, pickled by torch<2.6
-        (run_dir / "result.json").write_text(json.dumps(
-            {"iterations": iterations, "seconds": trained, "renders": str(renders)}))
-    result = json.loads((run_dir / "result.json").read_text())
-    pairs = [np.asarray(Image.open(p).convert("RGB"), np.float32) / 255  # truth | render
-             for p in sorted(Path(result.pop("renders")).glob("eval_img_*.png"))]
-    result["render"] = np.stack([pair[:, pair.shape[1] // 2:] for pair in pairs])
-    return result
-
-
-def _nerfacto_train(bin_dir: Path, data_dir: Path, out: Path, seconds: float, log: Path):
-    """Run ``ns-train nerfacto`` (its PyTorch implementation, on CUDA where its torch has
-    it) for ``seconds`` of training, its output to ``log``; its config file, the iterations
-    it trained and the seconds they took."""
-    device = ["--pipeline.model.implementation", "torch"]
-    if not _has_cuda(bin_dir):
-        device += ["--machine.device-type", "cpu"]
-    endless = str(10**8)  # the clock ends it (BENCH_HOOKS)
-    output = _run([bin_dir / "ns-train", "nerfacto", "--output-dir", out,
-                   "--max-num-iterations", endless, "--steps-per-save", endless,
-                   "--vis", "tensorboard", "--logging.local-writer.max-log-size", "0",
-                   *device, "nerfstudio-data", "--data", data_dir, "--downscale-factor", "1"],
-                  "ns-train", log, BENCH_SECONDS=str(seconds))
-    clock = CLOCK_LINE.search(output)
-    if not clock:
-        sys.exit(f"ns-train did not stop by the clock:\n{output[-2000:]}")
-    return sorted(out.rglob("config.yml"))[-1], int(clock.group(1)), float(clock.group(2))
-
-
-def _has_cuda(bin_dir: Path) -> bool:
-    probe = subprocess.run([bin_dir / "python", "-c",
-                            "import torch; print(torch.cuda.is_available())"],
-                           capture_output=True, text=True)
-    return probe.stdout.strip() == "True"
-
-
-def _run(command: list, what: str, log: Path | None = None, **env: str) -> str:
-    """Run ``command`` with ``env`` added, its output (stderr too) written to ``log`` while it
-    runs (a temporary file without one, so that a run stopped from outside leaves it); that
-    output, or exit with its last lines."""
-    with tempfile.TemporaryFile("w+") if log is None else open(log, "w+") as file:
-        done = subprocess.run([str(c) for c in command], stdout=file, stderr=subprocess.STDOUT,
-                              env={**os.environ, "PYTHONUNBUFFERED": "1", **env})
-        file.seek(0)
-        output = file.read()
-    if done.returncode:
-        sys.exit(f"{what} failed:\n" + "\n".join(output.splitlines()[-15:]))
-    return output
+def trained(method: str, data_dir: Path, run_dir: Path, args) -> dict:
+    """``method`` trained on ``data_dir`` for the budget of ``args`` (or its cached run in
+    ``run_dir``): its held-out renders and what ``ours`` or ``nerfacto`` report."""
+    seconds = 60 * args.minutes
+    if method == "nerfacto":
+        return nerfacto(data_dir, run_dir, seconds, args.nerfacto_venv.resolve())
+    strategy = "two-stage" if method.startswith("palette") else "rgb"
+    return ours(data_dir, run_dir, strategy, args.backbone, seconds, args.curve_points,
+                tuple(args.train_options), args.pretrain_share)
 
 
 def main() -> None:
@@ -435,17 +328,9 @@ def main() -> None:
         data = load_dataset(data_dir)
         truth = data.images[data.indices("test")]
         for method in args.methods:
-            seconds = 60 * args.minutes
-            if method == "nerfacto":
-                result = nerfacto(data_dir, folder / method, seconds,
-                                  args.nerfacto_venv.resolve())
-            else:
-                if args.backbone != "grid":  # results and runs named by backbone too
-                    method = f"{method}-{args.backbone}"
-                strategy = "two-stage" if method.startswith("palette") else "rgb"
-                result = ours(data_dir, folder / method, strategy, args.backbone, seconds,
-                              args.curve_points, tuple(args.train_options),
-                              args.pretrain_share)
+            if method != "nerfacto" and args.backbone != "grid":  # runs named by backbone too
+                method = f"{method}-{args.backbone}"
+            result = trained(method, data_dir, folder / method, args)
             render, seen = result.pop("render"), result.pop("seen", None)
             result.update(image_scores(render, truth, corrected=True), views=len(truth),
                           size=f"{data.intrinsics.width}x{data.intrinsics.height}",

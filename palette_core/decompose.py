@@ -155,16 +155,10 @@ def decompose(
     k = check_palette_size(k, max_error)
     method_options, palette_options = method_options or {}, palette_options or {}
     _check_settings(method, method_options, palette_method, palette_options, dtype, max_pixels)
-    timings = {}
     start = time.perf_counter()
-    root, paths = find_images(inputs)
-    progress = len(paths) >= PROGRESS_MIN_IMAGES
-    images = load_images(paths, root, progress, max_pixels)
-    colour_set = ColourSet.from_images(images)
-    if not colour_set.counts.any():
-        raise InputError("every pixel of every image is fully transparent: there are no colours "
-                         "to take a palette from")
-    timings["load"] = time.perf_counter() - start
+    images, colour_set = _colour_set(inputs, max_pixels)
+    progress = len(images) >= PROGRESS_MIN_IMAGES
+    timings = {"load": time.perf_counter() - start}
 
     start = time.perf_counter()
     poly = palette_polytope(colour_set.colours, colour_set.counts, k, max_error, palette_method,
@@ -181,23 +175,25 @@ def decompose(
     timings["weights"] = time.perf_counter() - start
 
     rmse, overall = _reconstruction_errors(images, weights, palette)
-    meta = {
-        "version": __version__,
-        "k": k,
-        "max_error": max_error,
-        "dtype": dtype,
-        "method_options": method_options,
-        "palette_method": palette_method,
-        "palette_options": palette_options,
-        "n_pixels": int(colour_set.offsets[-1]),
-        "n_colours": len(colour_set.colours),
-        "rmse": rmse,
-        "rmse_overall": overall,
-        "timings": timings,
-    }
+    meta = {"version": __version__, "k": k, "max_error": max_error, "dtype": dtype,
+            "method_options": method_options, "palette_method": palette_method,
+            "palette_options": palette_options, "n_pixels": int(colour_set.offsets[-1]),
+            "n_colours": len(colour_set.colours), "rmse": rmse, "rmse_overall": overall,
+            "timings": timings}
     stack = WeightStack(palette, weights, [im.name for im in images], method,
                         hull_faces=poly.faces.astype(np.int32), meta=meta)
     return Decomposition(stack, rmse, overall, timings, k, [Path(p) for p in inputs])
+
+
+def _colour_set(inputs: list, max_pixels: int) -> tuple[list, ColourSet]:
+    """The images of ``inputs`` and their colour set, refused when no pixel is opaque."""
+    root, paths = find_images(inputs)
+    images = load_images(paths, root, len(paths) >= PROGRESS_MIN_IMAGES, max_pixels)
+    colour_set = ColourSet.from_images(images)
+    if not colour_set.counts.any():
+        raise InputError("every pixel of every image is fully transparent: there are no colours "
+                         "to take a palette from")
+    return images, colour_set
 
 
 def _check_settings(method: str, method_options: dict, palette_method: str,

@@ -2,7 +2,8 @@
 editable materials they hit, and Blender-format datasets with transport weights.
 """
 
-from .scene import BUILTIN_SCENES, Scene, load_scene, parse_scene
+from .scene import BUILTIN_SCENES, Scene
+from .scene_file import load_scene, parse_scene
 from .simulate import (
     LAYOUTS,
     Simulation,

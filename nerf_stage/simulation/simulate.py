@@ -35,7 +35,8 @@ from ..data.cameras import (
 )
 from .geometry import next_term_table, scene_arrays
 from .pathtracer import trace_view
-from .scene import BUILTIN_SCENES, LIMITS, MAX_TERM_BYTES, SPLITS, Scene, load_scene
+from .scene import BUILTIN_SCENES, LIMITS, MAX_TERM_BYTES, SPLITS, Scene
+from .scene_file import load_scene
 
 GREY_TOL = 1e-12
 
