@@ -1,6 +1,6 @@
-"""The ``splats`` backbone: the rasteriser against a brute-force sum and finite differences,
-spherical harmonics, weights on the simplex from every view, densification's bounds, and a
-splat run that trains, saves, loads, renders, bakes and exports."""
+"""The ``splats`` backbone: spherical harmonics, weights on the simplex from every view,
+densification's bounds, and a splat run that trains, saves, loads, renders, bakes and
+exports (the rasteriser: ``test_rasterise.py``; the start: ``test_splat_start.py``)."""
 
 import math
 from dataclasses import replace
@@ -12,11 +12,9 @@ torch = pytest.importorskip("torch")
 
 from nerf_stage.backbone_settings import SplatConfig  # noqa: E402
 from nerf_stage.cli import main  # noqa: E402
-from nerf_stage.data.cameras import Intrinsics, look_at  # noqa: E402
 from nerf_stage.fields.base import ACTIVATIONS, RGB  # noqa: E402
-from nerf_stage.splats import backbone, footprints, rasterise, read_splats, start  # noqa: E402
-from nerf_stage.splats.model import covariances  # noqa: E402
-from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
+from nerf_stage.splats import backbone, footprints, read_splats  # noqa: E402
+from nerf_stage.splats.rasterise import draw  # noqa: E402
 from nerf_stage.splats.run import GEOMETRY, SplatModel  # noqa: E402
 from nerf_stage.splats.sh import SH_C0, sh_basis, sh_terms  # noqa: E402
 from nerf_stage.splats.strategy import PIXELS_PER_SPLAT, Densification  # noqa: E402
@@ -27,131 +25,7 @@ from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
 from .helpers import expect_error  # noqa: E402
-
-PIXELS = 10**6  # training pixels in all: no bound on the splats
-CAMERA = Intrinsics(width=12, height=10, fx=14.0, fy=14.0, cx=6.0, cy=5.0)
-POSE = torch.as_tensor(look_at(np.array([0.0, 0.0, 3.0]), np.zeros(3)), dtype=torch.float64)
-
-
-def few_splats(n=5, seed=0, dtype=torch.float64):
-    """``n`` splats around the origin, in front of ``POSE``, with random shapes."""
-    g = torch.Generator().manual_seed(seed)
-    means = (torch.rand(n, 3, generator=g, dtype=dtype) - 0.5) * 0.8
-    quats = torch.randn(n, 4, generator=g, dtype=dtype)
-    scales = 0.08 + 0.15 * torch.rand(n, 3, generator=g, dtype=dtype)
-    opacities = 0.3 + 0.6 * torch.rand(n, generator=g, dtype=dtype)
-    values = torch.rand(n, 4, generator=g, dtype=dtype)
-    return means, covariances(quats, scales), values, opacities
-
-
-def brute_force(means, cov, values, opacities, pose, camera):
-    """Every pixel: the splats sorted by depth, alpha from each one's projected Gaussian,
-    blended front to back (3D Gaussian splatting's image formation), in float64."""
-    pose = pose.double()
-    rotation, origin = pose[:3, :3], pose[:3, 3]
-    out = torch.zeros(camera.height * camera.width, values.shape[1], dtype=torch.float64)
-    acc = torch.zeros(camera.height * camera.width, dtype=torch.float64)
-    local = (means - origin) @ rotation
-    depth = -local[:, 2]
-    order = torch.argsort(depth)
-    for py in range(camera.height):
-        for px in range(camera.width):
-            light = 1.0
-            for s in order.tolist():
-                x, y, z = local[s]
-                d = -z
-                u, v = camera.cx + camera.fx * x / d, camera.cy - camera.fy * y / d
-                j = torch.tensor([[camera.fx / d, 0, camera.fx * x / d**2],
-                                  [0, -camera.fy / d, -camera.fy * y / d**2]], dtype=torch.float64)
-                t = j @ rotation.T
-                sigma = t @ cov[s] @ t.T + LOW_PASS * torch.eye(2, dtype=torch.float64)
-                delta = torch.tensor([px + 0.5 - u, py + 0.5 - v], dtype=torch.float64)
-                alpha = min(MAX_ALPHA, float(opacities[s] * torch.exp(
-                    -0.5 * delta @ torch.linalg.inv(sigma) @ delta)))
-                if alpha < 1 / 255 or light < MIN_TRANSMITTANCE:
-                    continue
-                out[py * camera.width + px] += light * alpha * values[s]
-                acc[py * camera.width + px] += light * alpha
-                light *= 1 - alpha
-    return out, acc
-
-
-@pytest.fixture(params=[None, 3], ids=["whole", "bands-of-3-rows"])
-def bands(request, monkeypatch):
-    """The view's pairs found at once, or a band of 3 rows at a time (``BAND_PIXELS``)."""
-    if request.param:
-        monkeypatch.setattr(rasterise, "BAND_PIXELS", request.param * CAMERA.width)
-
-
-def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel(bands):
-    splats = few_splats()
-    drawn, acc = draw(*splats, POSE, CAMERA, reach=64)
-    out, want = brute_force(*splats, POSE, CAMERA)
-    assert acc.max() > 0.3  # the splats are in view
-    assert torch.allclose(drawn, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
-
-
-def test_without_a_reach_a_splat_near_the_camera_is_drawn_whole():
-    """Cut off at a reach (training's bound on a view's pairs), a splat wider than it on
-    screen is drawn square and reported clipped; without one (renders), it is drawn whole."""
-    means, cov, values, opacities = few_splats()
-    means[0] = torch.tensor([0.0, 0.0, 2.2], dtype=means.dtype)  # 0.8 from the camera
-    info = {}
-    cut, _ = draw(means, cov, values, opacities, POSE, CAMERA, 2, info)
-    whole, acc = draw(means, cov, values, opacities, POSE, CAMERA, None)
-    out, want = brute_force(means, cov, values, opacities, POSE, CAMERA)
-    assert torch.allclose(whole, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
-    assert 0 in info["clipped"].tolist() and not torch.allclose(cut, out, atol=1e-3)
-
-
-def test_a_window_of_a_view_is_that_part_of_the_whole_view():
-    splats = few_splats()
-    whole, acc = draw(*splats, POSE, CAMERA, reach=64)
-    part, part_acc = draw(*splats, POSE, CAMERA, reach=64, window=(3, 2, 5, 4))
-    whole = whole.view(CAMERA.height, CAMERA.width, -1)[2:6, 3:8]
-    assert torch.allclose(part.view(4, 5, -1), whole, atol=1e-12)
-    assert torch.allclose(part_acc.view(4, 5), acc.view(CAMERA.height, CAMERA.width)[2:6, 3:8],
-                          atol=1e-12)
-
-
-def test_the_rasterisers_gradients_match_finite_differences(bands):
-    means, cov, values, opacities = few_splats(3, seed=1)
-    quats = torch.randn(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    scales = torch.full((3, 3), 0.15, dtype=torch.float64)
-    weights = torch.rand(CAMERA.height * CAMERA.width, 4, dtype=torch.float64)
-
-    def loss(means, scales, values, opacities):
-        drawn, acc = draw(means, covariances(quats, scales), values, opacities, POSE, CAMERA,
-                          reach=64)
-        return (drawn * weights).sum() + acc.square().sum()
-
-    inputs = [t.clone().requires_grad_(True) for t in (means, scales, values, opacities)]
-    assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
-
-
-def test_draw_reports_the_screen_positions_densification_reads():
-    means, cov, values, opacities = few_splats()
-    means.requires_grad_(True)
-    info = {}
-    drawn, _ = draw(means, cov, values, opacities, POSE, CAMERA, 64, info)
-    drawn.sum().backward()
-    assert info["means2d"].shape == (5, 2) and info["means2d"].grad is not None
-    assert set(info["drawn"].tolist()) <= set(info["front"].tolist())
-
-
-def test_the_reported_pairs_make_up_the_view():
-    """``info['pairs']`` (pixel, splat, contribution) sums to the drawn values: what the
-    palette stage's start and the regions read; the first splat behind the camera, so
-    that the drawn projections' indices are not the splats'."""
-    means, cov, values, opacities = few_splats()
-    means[0] = torch.tensor([0.0, 0.0, 4.0], dtype=means.dtype)
-    info = {}
-    drawn, acc = draw(means, cov, values, opacities, POSE, CAMERA, 64, info, keep_pairs=True)
-    pixel, splat, contribution = info["pairs"]
-    rebuilt = torch.zeros_like(drawn).index_add(0, pixel, contribution[:, None] * values[splat])
-    assert torch.allclose(rebuilt, drawn, atol=1e-12)
-    assert torch.allclose(torch.zeros_like(acc).index_add(0, pixel, contribution), acc)
-    assert 0 not in splat.tolist() and len(set(splat.tolist())) > 1
+from .splat_cases import CAMERA, PIXELS, POSE, few_splats  # noqa: E402
 
 
 def test_spherical_harmonics_are_orthonormal_over_the_sphere():
@@ -630,159 +504,6 @@ def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, t
     write_splats(splats, tmp_path / "s.npz")
     with pytest.raises(InputError, match="residual must have shape"):
         read_splats(tmp_path / "s.npz")
-
-
-def _views_of(box, alpha=None):
-    """Two views of ``box`` (CAMERA), right halves blue, left halves black."""
-    from nerf_stage.splats.start import SeenViews
-
-    poses = np.stack([look_at(box.centre + np.array([0.0, -0.75, 0.25]) * box.scale,
-                              box.centre, up=(0, 0, 1)),
-                      look_at(box.centre + np.array([0.6, 0.1, 0.1]) * box.scale, box.centre,
-                              up=(0, 0, 1))])
-    images = np.zeros((2, CAMERA.height, CAMERA.width, 3), np.float32)
-    images[:, :, CAMERA.width // 2:] = (0.2, 0.4, 0.9)
-    alpha = np.ones(images.shape[:3], np.float32) if alpha is None else alpha
-    return SeenViews(poses, [CAMERA, CAMERA], images, alpha)
-
-
-@pytest.mark.parametrize("unbounded", [False, True])
-def test_scenes_without_points_start_their_splats_where_the_views_look(unbounded):
-    """Each starting splat lies on the ray through a point of an opaque pixel of a training
-    view, in that pixel's colour, within the box (or, unbounded, about half of them beyond
-    it, within ten times the distance at which its ray leaves the box)."""
-    from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.start import initial_splats
-
-    box = SceneBox(np.array([0.0, 0.0, 1.0]), np.array([8.0, 8.0, 4.0]), unbounded=unbounded)
-    alpha = np.ones((2, CAMERA.height, CAMERA.width), np.float32)
-    alpha[1, :, :CAMERA.width // 2] = 0  # the second view's black half is transparent
-    views = _views_of(box, alpha)
-    start = initial_splats(box, 400, 0, torch.Generator().manual_seed(0), views)
-    world = start["means"].numpy() * box.scale + box.centre
-    colours = SH_C0 * start["colours"].numpy() + 0.5
-    seen = np.zeros((2, len(world)), bool)
-    for i, pose in enumerate(views.poses):  # on a pixel of its colour, opaque
-        local = (world - pose[:3, 3]) @ pose[:3, :3]
-        x = CAMERA.cx + CAMERA.fx * local[:, 0] / -local[:, 2]
-        y = CAMERA.cy - CAMERA.fy * local[:, 1] / -local[:, 2]
-        inside = (-local[:, 2] > 0) & (x >= 0) & (x < CAMERA.width) & (y >= 0) & (
-            y < CAMERA.height)
-        right = x >= CAMERA.width // 2
-        colour = np.where(right[:, None], (0.2, 0.4, 0.9), 0.0)
-        seen[i] = inside & np.isclose(colours, colour, atol=1e-5).all(1) & (right | (i == 0))
-    assert seen.any(0).mean() > 0.95 and len(world) == 400
-    reach = np.abs(start["means"].numpy()).max(1)
-    if unbounded:
-        assert 0.3 < (reach > 1).mean() < 0.7 and reach.max() <= 10 * (0.8 + np.sqrt(3))
-    else:
-        assert (np.abs(start["means"].numpy()) <= box.extent + 1e-5).all()
-
-
-def test_bounded_scenes_start_their_splats_in_the_visual_hull():
-    from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.start import initial_splats
-
-    box = SceneBox(np.zeros(3), np.array([2.0, 2.0, 2.0]))
-    hull = np.zeros((4, 4, 4), bool)
-    hull[1:3, 1:3, 1:3] = True  # the middle half of the box, less one cell
-    hull[2, 2, 2] = False
-    views = replace(_views_of(box), hull=hull)
-    means = initial_splats(box, 200, 1, torch.Generator().manual_seed(0), views)["means"].numpy()
-    assert len(means) > 150
-    cells = np.clip(((means / box.extent * 0.5 + 0.5) * 4).astype(int), 0, 3)
-    assert hull[tuple(cells.T)].all()
-
-
-def test_splats_started_where_the_views_look_are_no_wider_than_the_reach_allows():
-    """Far splats of an unbounded scene lie far apart: each starts at most ``widest`` times
-    its distance to the nearest camera wide, as sparse points do."""
-    from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.start import initial_splats
-
-    box = SceneBox(np.zeros(3), np.full(3, 2.0), unbounded=True)
-    views = _views_of(box)
-    eyes = (views.poses[:, :3, 3] - box.centre) / box.scale
-    start = initial_splats(box, 300, 0, torch.Generator().manual_seed(0), views, eyes=eyes,
-                           widest=0.02)
-    nearest = np.linalg.norm(start["means"].numpy()[:, None] - eyes[None], axis=2).min(1)
-    width = np.exp(start["scales"].numpy()[:, 0])
-    assert (width <= 0.02 * nearest * (1 + 1e-5)).all()
-    assert (width > 0.019 * nearest).mean() > 0.5  # the far ones, at least, are capped
-
-
-def test_a_capture_with_sparse_points_starts_its_splats_there():
-    """3D Gaussian splatting's start: splats at (at most ``n`` of) the points, in their
-    colours, as wide as their neighbours are far."""
-    from nerf_stage.data.points import Points
-    from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.sh import SH_C0
-    from nerf_stage.splats.start import initial_splats
-
-    box = SceneBox(np.array([1.0, 2.0, 3.0]), np.array([2.0, 1.0, 1.0]))
-    rng = np.random.default_rng(0)
-    points = Points(box.centre + rng.uniform(-1, 1, (40, 3)), rng.uniform(size=(40, 3)))
-    start = initial_splats(box, 30, 2, torch.Generator().manual_seed(0), points=points)
-    assert len(start["means"]) == 30
-    world = start["means"].numpy() * box.scale + box.centre
-    nearest = np.abs(world[:, None] - points.positions[None]).sum(-1).argmin(1)
-    assert np.allclose(world, points.positions[nearest], atol=1e-5)
-    colours = SH_C0 * start["colours"].numpy() + 0.5
-    assert np.allclose(colours, points.colours[nearest], atol=1e-5)
-    assert len(set(nearest.tolist())) == 30 and start["colours_rest"].shape == (30, 8, 3)
-
-
-@pytest.mark.parametrize("unbounded", [False, True])
-def test_splats_start_where_the_views_see_no_point_too(unbounded, monkeypatch):
-    """Points seen in the left half of a view leave its right half empty: splats start
-    there too, on rays through its pixels, in their colour, no nearer than the points, as
-    many for that half as the points are for the other."""
-    from nerf_stage.data.points import Points
-    from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.start import initial_splats
-
-    monkeypatch.setattr(start, "COVER_CELLS", CAMERA.width // 2)  # cells of 2 x 2 pixels
-    box = SceneBox(np.zeros(3), np.full(3, 2.0), unbounded=unbounded)
-    alpha = np.ones((2, CAMERA.height, CAMERA.width), np.float32)
-    alpha[1] = 0  # the second view is transparent: the first alone counts
-    views = _views_of(box, alpha)
-    pose, depth = views.poses[0], 0.8 * box.scale
-    y, x = np.mgrid[:CAMERA.height, :CAMERA.width // 2] + 0.5  # the left half's pixel centres
-    local = np.stack([(x - CAMERA.cx) / CAMERA.fx, -(y - CAMERA.cy) / CAMERA.fy,
-                      -np.ones_like(x)], -1).reshape(-1, 3) * depth
-    points = Points(local @ pose[:3, :3].T + pose[:3, 3], np.full((len(local), 3), 0.5))
-    started = initial_splats(box, 1000, 0, torch.Generator().manual_seed(0), views, points)
-    world = started["means"].numpy()[len(points):] * box.scale + box.centre
-    assert len(world) == len(points)  # the empty half is as large as the other
-    seen = (world - pose[:3, 3]) @ pose[:3, :3]
-    px = CAMERA.cx + CAMERA.fx * seen[:, 0] / -seen[:, 2]
-    distance = np.linalg.norm(world - pose[:3, 3], axis=1)
-    assert (distance >= depth * (1 - 1e-5)).all() and (px >= CAMERA.width // 2).all()
-    colours = SH_C0 * started["colours"].numpy()[len(points):] + 0.5
-    assert np.allclose(colours, (0.2, 0.4, 0.9), atol=1e-5)
-
-
-def test_sparse_points_near_a_camera_start_no_wider_than_the_reach_allows():
-    """Points far apart start as wide as their neighbours are far, except where that would
-    draw them past ``--splats-reach`` in the nearest view: there at most ``widest`` times
-    their distance to it, so that no starting splat is cut off square."""
-    from nerf_stage.data.points import Points
-    from nerf_stage.render.scene_box import SceneBox
-    from nerf_stage.splats.start import initial_splats
-
-    box = SceneBox(np.zeros(3), np.ones(3))
-    positions = np.array([[0.0, 0, 0], [0.9, 0, 0], [0, 0.9, 0], [0, 0, 0.9], [0.9, 0.9, 0.9]])
-    points = Points(positions, np.full((5, 3), 0.5))
-    eyes = np.array([[0.0, 0, 2], [0, 0, -5]])
-    free = initial_splats(box, 5, 0, torch.Generator().manual_seed(0), points=points)
-    capped = initial_splats(box, 5, 0, torch.Generator().manual_seed(0), points=points, eyes=eyes,
-                            widest=0.05)
-    means = capped["means"].numpy()
-    nearest = np.linalg.norm(means[:, None] - eyes[None], axis=2).min(1)
-    width = np.exp(capped["scales"].numpy()[:, 0])
-    assert np.allclose(width, np.minimum(np.exp(free["scales"].numpy()[:, 0]), 0.05 * nearest),
-                       rtol=1e-5)
-    assert (width < np.exp(free["scales"].numpy()[:, 0])).all()
 
 
 def test_the_palette_stage_decays_every_rate_to_lr_decay():

@@ -1,0 +1,115 @@
+"""The splat rasteriser (``splats/rasterise.py``) against a brute-force sum over every pixel
+and finite differences, whole views and bands of rows."""
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nerf_stage.splats import rasterise  # noqa: E402
+from nerf_stage.splats.model import covariances  # noqa: E402
+from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
+
+from .splat_cases import CAMERA, POSE, few_splats  # noqa: E402
+
+
+def brute_force(means, cov, values, opacities, pose, camera):
+    """Every pixel: the splats sorted by depth, alpha from each one's projected Gaussian,
+    blended front to back (3D Gaussian splatting's image formation), in float64."""
+    pose = pose.double()
+    rotation, origin = pose[:3, :3], pose[:3, 3]
+    out = torch.zeros(camera.height * camera.width, values.shape[1], dtype=torch.float64)
+    acc = torch.zeros(camera.height * camera.width, dtype=torch.float64)
+    local = (means - origin) @ rotation
+    depth = -local[:, 2]
+    order = torch.argsort(depth)
+    for py in range(camera.height):
+        for px in range(camera.width):
+            light = 1.0
+            for s in order.tolist():
+                x, y, z = local[s]
+                d = -z
+                u, v = camera.cx + camera.fx * x / d, camera.cy - camera.fy * y / d
+                j = torch.tensor([[camera.fx / d, 0, camera.fx * x / d**2],
+                                  [0, -camera.fy / d, -camera.fy * y / d**2]], dtype=torch.float64)
+                t = j @ rotation.T
+                sigma = t @ cov[s] @ t.T + LOW_PASS * torch.eye(2, dtype=torch.float64)
+                delta = torch.tensor([px + 0.5 - u, py + 0.5 - v], dtype=torch.float64)
+                alpha = min(MAX_ALPHA, float(opacities[s] * torch.exp(
+                    -0.5 * delta @ torch.linalg.inv(sigma) @ delta)))
+                if alpha < 1 / 255 or light < MIN_TRANSMITTANCE:
+                    continue
+                out[py * camera.width + px] += light * alpha * values[s]
+                acc[py * camera.width + px] += light * alpha
+                light *= 1 - alpha
+    return out, acc
+
+@pytest.fixture(params=[None, 3], ids=["whole", "bands-of-3-rows"])
+def bands(request, monkeypatch):
+    """The view's pairs found at once, or a band of 3 rows at a time (``BAND_PIXELS``)."""
+    if request.param:
+        monkeypatch.setattr(rasterise, "BAND_PIXELS", request.param * CAMERA.width)
+
+def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel(bands):
+    splats = few_splats()
+    drawn, acc = draw(*splats, POSE, CAMERA, reach=64)
+    out, want = brute_force(*splats, POSE, CAMERA)
+    assert acc.max() > 0.3  # the splats are in view
+    assert torch.allclose(drawn, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
+
+def test_without_a_reach_a_splat_near_the_camera_is_drawn_whole():
+    """Cut off at a reach (training's bound on a view's pairs), a splat wider than it on
+    screen is drawn square and reported clipped; without one (renders), it is drawn whole."""
+    means, cov, values, opacities = few_splats()
+    means[0] = torch.tensor([0.0, 0.0, 2.2], dtype=means.dtype)  # 0.8 from the camera
+    info = {}
+    cut, _ = draw(means, cov, values, opacities, POSE, CAMERA, 2, info)
+    whole, acc = draw(means, cov, values, opacities, POSE, CAMERA, None)
+    out, want = brute_force(means, cov, values, opacities, POSE, CAMERA)
+    assert torch.allclose(whole, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
+    assert 0 in info["clipped"].tolist() and not torch.allclose(cut, out, atol=1e-3)
+
+def test_a_window_of_a_view_is_that_part_of_the_whole_view():
+    splats = few_splats()
+    whole, acc = draw(*splats, POSE, CAMERA, reach=64)
+    part, part_acc = draw(*splats, POSE, CAMERA, reach=64, window=(3, 2, 5, 4))
+    whole = whole.view(CAMERA.height, CAMERA.width, -1)[2:6, 3:8]
+    assert torch.allclose(part.view(4, 5, -1), whole, atol=1e-12)
+    assert torch.allclose(part_acc.view(4, 5), acc.view(CAMERA.height, CAMERA.width)[2:6, 3:8],
+                          atol=1e-12)
+
+def test_the_rasterisers_gradients_match_finite_differences(bands):
+    means, cov, values, opacities = few_splats(3, seed=1)
+    quats = torch.randn(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    scales = torch.full((3, 3), 0.15, dtype=torch.float64)
+    weights = torch.rand(CAMERA.height * CAMERA.width, 4, dtype=torch.float64)
+
+    def loss(means, scales, values, opacities):
+        drawn, acc = draw(means, covariances(quats, scales), values, opacities, POSE, CAMERA,
+                          reach=64)
+        return (drawn * weights).sum() + acc.square().sum()
+
+    inputs = [t.clone().requires_grad_(True) for t in (means, scales, values, opacities)]
+    assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+def test_draw_reports_the_screen_positions_densification_reads():
+    means, cov, values, opacities = few_splats()
+    means.requires_grad_(True)
+    info = {}
+    drawn, _ = draw(means, cov, values, opacities, POSE, CAMERA, 64, info)
+    drawn.sum().backward()
+    assert info["means2d"].shape == (5, 2) and info["means2d"].grad is not None
+    assert set(info["drawn"].tolist()) <= set(info["front"].tolist())
+
+def test_the_reported_pairs_make_up_the_view():
+    """``info['pairs']`` (pixel, splat, contribution) sums to the drawn values: what the
+    palette stage's start and the regions read; the first splat behind the camera, so
+    that the drawn projections' indices are not the splats'."""
+    means, cov, values, opacities = few_splats()
+    means[0] = torch.tensor([0.0, 0.0, 4.0], dtype=means.dtype)
+    info = {}
+    drawn, acc = draw(means, cov, values, opacities, POSE, CAMERA, 64, info, keep_pairs=True)
+    pixel, splat, contribution = info["pairs"]
+    rebuilt = torch.zeros_like(drawn).index_add(0, pixel, contribution[:, None] * values[splat])
+    assert torch.allclose(rebuilt, drawn, atol=1e-12)
+    assert torch.allclose(torch.zeros_like(acc).index_add(0, pixel, contribution), acc)
+    assert 0 not in splat.tolist() and len(set(splat.tolist())) > 1
