@@ -160,6 +160,11 @@ class SplatConfig:
     splatting's schedule)."""
     ssim_weight: float = 0.2
     """Weight of 1 - SSIM beside L1 in the RGB stage's loss."""
+    triangulate: bool = True
+    """A capture without sparse points gets them triangulated from its training views at
+    their poses when a run starts (COLMAP's point triangulator, the ``poses`` extra), so
+    that the splats start at them; false, or when none triangulate: the splats start where
+    the views look."""
     reach: int = 64
     """Pixels from its centre that training draws a splat to at most (a bound on a view's
     pairs; densification splits the splats it cuts off); renders draw each splat whole."""
@@ -217,6 +222,8 @@ class SplatConfig:
         integers(self, 0, MAX_ITERS, "refine_start", "schedule_iters")
         integers(self, 1, 4096, "reach")
         integers(self, 0, 1 << 16, "patch")
+        if not isinstance(self.triangulate, bool):
+            raise InputError(f"triangulate must be true or false, got {self.triangulate!r}")
         if self.initial > self.max_splats:
             raise InputError(f"initial splats must be at most max_splats, got {self.initial} > "
                              f"{self.max_splats}")

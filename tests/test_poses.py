@@ -143,12 +143,10 @@ def test_a_walk_forward_registers_with_sequential_matching(tmp_path):
     assert rotation.max() < 3.0 and centre.max() < 0.1
 
 
-def test_a_posed_capture_keeps_its_poses_and_gets_points_on_its_surfaces(corner, tmp_path):
-    """A capture with known poses (nerfstudio's ``transforms.json``, every other photo held
-    out by name) is matched and its points triangulated from those poses: they lie on the
-    room corner's floor and walls, in the frame of the poses, which the capture keeps."""
+def _posed(corner, posed):
+    """The corner's photos with their true poses (nerfstudio's ``transforms.json``, every
+    other photo held out by name), no points."""
     folder, poses = corner
-    posed = tmp_path / "posed"
     shutil.copytree(folder, posed / "images")
     names = sorted(p.name for p in folder.iterdir())
     (posed / "transforms.json").write_text(json.dumps({
@@ -158,6 +156,20 @@ def test_a_posed_capture_keeps_its_poses_and_gets_points_on_its_surfaces(corner,
         "test_filenames": [f"images/{n}" for n in names[1::2]],
         "frames": [{"file_path": f"images/{n}", "transform_matrix": pose.tolist()}
                    for n, pose in zip(names, poses)]}))
+    return posed
+
+
+def _on_the_corner(points) -> np.ndarray:
+    """Each point's distance to the nearest of the room corner's three planes."""
+    return np.abs(np.stack([points[:, 1], points[:, 2] + 2, points[:, 0] + 2])).min(0)
+
+
+def test_a_posed_capture_keeps_its_poses_and_gets_points_on_its_surfaces(corner, tmp_path):
+    """A capture with known poses is matched and its points triangulated from those poses:
+    they lie on the room corner's floor and walls, in the frame of the poses, which the
+    capture keeps."""
+    _, poses = corner
+    posed = _posed(corner, tmp_path / "posed")
     out = tmp_path / "capture"
     assert nerf_stage(["poses", str(posed), "-o", str(out)]) == 0
     dataset = load_dataset(out)
@@ -165,9 +177,33 @@ def test_a_posed_capture_keeps_its_poses_and_gets_points_on_its_surfaces(corner,
     assert dataset.indices("test").tolist() == [1, 3, 5, 7, 9]
     points = dataset.points.positions
     assert len(points) > 100
-    planes = np.abs(np.stack([points[:, 1], points[:, 2] + 2, points[:, 0] + 2]))
-    distance = planes.min(0)  # a pixel is about 2 cm across on the walls
+    distance = _on_the_corner(points)  # a pixel is about 2 cm across on the walls
     assert np.median(distance) < 0.02 and np.mean(distance < 0.1) > 0.9
+
+
+def test_a_splat_run_of_a_posed_capture_without_points_starts_at_triangulated_ones(
+        corner, tmp_path, monkeypatch):
+    """A capture with poses and no points: a splat run triangulates them from its training
+    views (not the held-out ones) as it starts, on the corner's surfaces; with
+    ``--no-splats-triangulate`` it starts without them."""
+    from nerf_stage.data.sfm import points_from_poses
+    from nerf_stage.train import trainer
+
+    posed = _posed(corner, tmp_path / "posed")
+    dataset = load_dataset(posed)
+    points = points_from_poses(dataset, dataset.indices("train"), progress=False)
+    assert len(points) > 50 and np.median(_on_the_corner(points.positions)) < 0.02
+    started, choose = [], trainer.choose_scene_box
+    monkeypatch.setattr(trainer, "choose_scene_box",
+                        lambda config, data, *rest: started.append(data.points)
+                        or choose(config, data, *rest))
+    assert decompose.main([str(posed / "images"), "-k", "4", "-o",
+                           str(posed / "weights.npz")]) == 0
+    for flags in ([], ["--no-splats-triangulate"]):
+        assert nerf_stage(["train", str(posed), "--backbone", "splats", "-o",
+                           str(tmp_path / "run"), "--force", "--pretrain-iters", "2",
+                           "--finetune-iters", "2", *flags]) == 0
+    assert len(started[0]) == len(points) and started[1] is None
 
 
 def test_text_and_binary_models_read_the_same(capture, tmp_path):

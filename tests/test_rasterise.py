@@ -1,5 +1,7 @@
 """The splat rasteriser (``splats/rasterise.py``) against a brute-force sum over every pixel
-and finite differences, whole views and bands of rows."""
+and finite differences: through the tile kernels of a CPU (``splats/tiles.py``) and through
+pairs in PyTorch (whole views and bands of rows), and the two against each other on many
+random splats."""
 
 import pytest
 
@@ -43,11 +45,15 @@ def brute_force(means, cov, values, opacities, pose, camera):
                 light *= 1 - alpha
     return out, acc
 
-@pytest.fixture(params=[None, 3], ids=["whole", "bands-of-3-rows"])
+
+@pytest.fixture(params=["tiles", "pairs", "pairs-in-bands-of-3-rows"])
 def bands(request, monkeypatch):
-    """The view's pairs found at once, or a band of 3 rows at a time (``BAND_PIXELS``)."""
-    if request.param:
-        monkeypatch.setattr(rasterise, "BAND_PIXELS", request.param * CAMERA.width)
+    """The tile kernels, or the view's pairs found at once, or a band of 3 rows at a time
+    (``BAND_PIXELS``)."""
+    monkeypatch.setattr(rasterise, "TILED", request.param == "tiles")
+    if request.param.endswith("rows"):
+        monkeypatch.setattr(rasterise, "BAND_PIXELS", 3 * CAMERA.width)
+
 
 def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel(bands):
     splats = few_splats()
@@ -55,6 +61,7 @@ def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel(bands):
     out, want = brute_force(*splats, POSE, CAMERA)
     assert acc.max() > 0.3  # the splats are in view
     assert torch.allclose(drawn, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
+
 
 def test_without_a_reach_a_splat_near_the_camera_is_drawn_whole():
     """Cut off at a reach (training's bound on a view's pairs), a splat wider than it on
@@ -68,6 +75,7 @@ def test_without_a_reach_a_splat_near_the_camera_is_drawn_whole():
     assert torch.allclose(whole, out, atol=1e-9) and torch.allclose(acc, want, atol=1e-9)
     assert 0 in info["clipped"].tolist() and not torch.allclose(cut, out, atol=1e-3)
 
+
 def test_a_window_of_a_view_is_that_part_of_the_whole_view():
     splats = few_splats()
     whole, acc = draw(*splats, POSE, CAMERA, reach=64)
@@ -76,6 +84,7 @@ def test_a_window_of_a_view_is_that_part_of_the_whole_view():
     assert torch.allclose(part.view(4, 5, -1), whole, atol=1e-12)
     assert torch.allclose(part_acc.view(4, 5), acc.view(CAMERA.height, CAMERA.width)[2:6, 3:8],
                           atol=1e-12)
+
 
 def test_the_rasterisers_gradients_match_finite_differences(bands):
     means, cov, values, opacities = few_splats(3, seed=1)
@@ -91,6 +100,7 @@ def test_the_rasterisers_gradients_match_finite_differences(bands):
     inputs = [t.clone().requires_grad_(True) for t in (means, scales, values, opacities)]
     assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
+
 def test_draw_reports_the_screen_positions_densification_reads():
     means, cov, values, opacities = few_splats()
     means.requires_grad_(True)
@@ -99,6 +109,7 @@ def test_draw_reports_the_screen_positions_densification_reads():
     drawn.sum().backward()
     assert info["means2d"].shape == (5, 2) and info["means2d"].grad is not None
     assert set(info["drawn"].tolist()) <= set(info["front"].tolist())
+
 
 def test_the_reported_pairs_make_up_the_view():
     """``info['pairs']`` (pixel, splat, contribution) sums to the drawn values: what the
@@ -113,3 +124,49 @@ def test_the_reported_pairs_make_up_the_view():
     assert torch.allclose(rebuilt, drawn, atol=1e-12)
     assert torch.allclose(torch.zeros_like(acc).index_add(0, pixel, contribution), acc)
     assert 0 not in splat.tolist() and len(set(splat.tolist())) > 1
+
+
+def _random_scene(n=400, seed=1):
+    """``n`` float32 splats about a 64 x 48 view: some behind the camera, some wider than
+    the image, some nearly transparent, some nearly opaque; their parameters as leaves."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g) * torch.tensor([1.2, 1.0, 1.5])
+    means[: n // 10, 2] = 3.5 + torch.rand(n // 10, generator=g)  # behind the camera at z 3
+    log_scales = torch.randn(n, 3, generator=g) * 0.6 - 2.5
+    log_scales[n // 10: n // 10 + 5] = 1.5  # wider than the image
+    quats = torch.randn(n, 4, generator=g)
+    opacities = torch.rand(n, generator=g)
+    values = torch.rand(n, 3, generator=g)
+    return [t.requires_grad_() for t in (means, log_scales, quats, opacities, values)]
+
+
+def _drawn_and_gradients(tiled, monkeypatch, reach):
+    from nerf_stage.data.cameras import Intrinsics
+
+    monkeypatch.setattr(rasterise, "TILED", tiled)
+    camera = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0)
+    means, log_scales, quats, opacities, values = leaves = _random_scene()
+    info = {}
+    drawn, acc = draw(means, covariances(quats, log_scales.exp()), values, opacities,
+                      POSE.float(), camera, reach, info)
+    g = torch.Generator().manual_seed(2)
+    loss = ((drawn * torch.rand(drawn.shape, generator=g)).sum()
+            + (acc * torch.rand(acc.shape, generator=g)).sum())
+    loss.backward()
+    return drawn, acc, [leaf.grad for leaf in leaves], info
+
+
+@pytest.mark.parametrize("reach", [None, 8])
+def test_the_tile_kernels_match_the_pairs_in_pytorch(monkeypatch, reach):
+    """On 400 random splats, in front of and behind the camera, wider than the image, cut
+    off at a reach or not: the tile kernels' values, opacity and every gradient against
+    the PyTorch pairs' within 1e-4 (of the largest), and the same splats drawn."""
+    tiles = _drawn_and_gradients(True, monkeypatch, reach)
+    pairs = _drawn_and_gradients(False, monkeypatch, reach)
+    assert tiles[1].max() > 0.5 and tiles[1].min() < 0.1  # covered and open parts
+    for a, b in [*zip(tiles[:2], pairs[:2]), *zip(tiles[2], pairs[2])]:
+        assert torch.isfinite(a).all()
+        assert (a - b).abs().max() <= 1e-4 * max(1.0, float(b.abs().max()))
+    assert torch.equal(torch.sort(tiles[3]["drawn"]).values, torch.sort(pairs[3]["drawn"]).values)
+    assert torch.allclose(tiles[3]["means2d"].grad, pairs[3]["means2d"].grad, atol=1e-4)
+

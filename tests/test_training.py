@@ -238,7 +238,7 @@ def test_a_run_with_other_optimisers_does_not_resume(cornell, tmp_path):
 
 
 def test_a_wall_clock_limit_ends_each_stage_at_its_share(cornell, tmp_path):
-    config = tiny_config(pretrain_iters=50, finetune_iters=50, minutes=1e-9)
+    config = tiny_config(pretrain_iters=50, finetune_iters=50, minutes=1e-9, fill_minutes=False)
     run = trained(cornell, config, tmp_path / "run")  # each stage's first iteration only
     assert [entry["iteration"] for entry in run.record.log] == [1, 51]
     assert run.record.iteration == 100 and run.field.kind == "transport"
@@ -248,6 +248,26 @@ def test_a_wall_clock_limit_ends_each_stage_at_its_share(cornell, tmp_path):
         TrainConfig(minutes=-1.0)
     # subnormals, flushed to zero while training, are back after it
     assert float(torch.tensor(1e-40) * torch.tensor(1.0)) > 0
+
+
+def test_minutes_plan_the_iterations_and_the_clock_ends_the_run(cornell, tmp_path):
+    """Under ``--minutes`` a fresh run plans its iterations from a probe of its first stage
+    (``budget``): the clock, not the iterations, ends it, at the budget; the run's config is
+    the plan, which ``--resume`` with the config asked for accepts."""
+    from nerf_stage.train import budget
+
+    config = tiny_config(minutes=0.02)
+    run = trained(cornell, config, tmp_path / "run")
+    assert not run.config.fill_minutes and run.config.total_iters > 10 * budget.PROBE_ITERS
+    assert run.record.log[-1]["seconds"] >= 60 * config.minutes
+    assert run.record.iteration < run.config.total_iters  # iterations to spare
+    assert budget.plans_like(run.config, config)
+    assert not budget.plans_like(run.config, replace(config, seed=1))
+    resumed = trained(cornell, config, tmp_path / "run", resume=True)
+    assert resumed.record.log == run.record.log
+    share = budget.planned(config, 10.0)
+    assert share.pretrain_iters / share.total_iters == pytest.approx(0.5, abs=0.01)
+    assert share.pretrain_minutes == pytest.approx(0.01)
 
 
 @pytest.mark.parametrize("loss", ["rgb_weight", "sparsity_weight"])

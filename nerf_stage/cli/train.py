@@ -48,13 +48,10 @@ def run(args) -> int:
     dataset, log = done.dataset, done.run.record.log
     print(f"dataset: {dataset.root} ({dataset.layout} layout, {len(dataset.names)} frames, "
           f"{len(dataset.indices('train'))} for training)")
-    if config.backbone == "splats" and dataset.points is None:
-        print(f"the splats started without sparse points (the capture has none): nerf-stage "
-              f"poses {dataset.root} -o CAPTURE triangulates them from its poses")
     print(f"weights: {done.weights}")
-    limited = " (the --minutes limit)" if len(log) < config.total_iters else ""
+    asked = f" of the {60 * config.minutes:.0f} s asked" if config.minutes else ""
     print(f"trained {config.backbone} ({config.strategy}) for {len(log)} iterations in "
-          f"{log[-1]['seconds']:.0f} s{limited}, last batch PSNR {log[-1]['psnr']:.2f} dB, "
+          f"{log[-1]['seconds']:.0f} s{asked}, last batch PSNR {log[-1]['psnr']:.2f} dB, "
           f"peak memory {peak_memory(done.run.device)}")
     print(f"wrote {done.rundir / CHECKPOINT}; next: nerf-stage render {done.rundir} -o DIR")
     return 0

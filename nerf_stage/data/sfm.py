@@ -226,27 +226,12 @@ def _posed_capture(pycolmap, dataset: Dataset, out: Path, matcher: str, force: b
     """Write the capture folder ``out`` for ``dataset``, whose poses are known: its images
     as ``load_dataset`` read them (undistorted) in PNGs, its cameras, poses and splits in
     ``transforms.json``, and the points triangulated from them (``triangulate_points``)."""
-    names = [f"{i:04d}.png" for i in range(len(dataset.names))]
-    if len(names) < MIN_PHOTOS:
-        raise InputError(f"{dataset.root} holds {len(names)} photo(s); triangulation needs at "
-                         f"least {MIN_PHOTOS}")
+    ids = list(range(len(dataset.names)))
     with tempfile.TemporaryDirectory(prefix="nerf-stage-poses-") as work:
         work, seconds = Path(work), {}
-        photos = work / "images"
-        photos.mkdir()
-        for name, image, alpha in zip(names, dataset.images, dataset.alpha):
-            rgba = np.concatenate([image, alpha[..., None]], -1) if (alpha < 1).any() else image
-            Image.fromarray((rgba * 255).round().astype(np.uint8)).save(photos / name)
-        database = _matched(pycolmap, photos, names, work, pycolmap.CameraMode.PER_IMAGE,
-                            "PINHOLE", matcher, progress, seconds)
-        start = time.perf_counter()
-        reconstruction = triangulate_points(pycolmap, dataset, photos, names, database, work)
-        seconds["triangulation"] = time.perf_counter() - start
+        names, photos, reconstruction = _triangulated(pycolmap, dataset, ids, work, matcher,
+                                                      progress, seconds)
         points = reconstruction.points3D.values()
-        if not points:
-            raise InputError(f"no point could be triangulated from the {len(names)} photos of "
-                             f"{dataset.root} at their poses: they may overlap too little or "
-                             "lack texture")
         report = PosesReport(names, [], float(reconstruction.compute_mean_reprojection_error()),
                              len(points), dataset.lenses is not None, seconds, [len(names)],
                              posed=True)
@@ -260,10 +245,60 @@ def _posed_capture(pycolmap, dataset: Dataset, out: Path, matcher: str, force: b
             (staging / "transforms.json").write_text(json.dumps({
                 "camera_model": "PINHOLE", "ply_file_path": POINTS_FILE, "frames": frames,
                 **{f"{split}_filenames": files for split, files in splits.items()}}, indent=1))
-            write_points(Points(np.array([p.xyz for p in points]).reshape(-1, 3),
-                                np.array([p.color for p in points], np.float32).reshape(-1, 3)
-                                / 255), staging / POINTS_FILE)
+            write_points(_points(reconstruction), staging / POINTS_FILE)
     return report
+
+
+def points_from_poses(dataset: Dataset, ids, progress: bool = True) -> Points:
+    """The sparse points triangulated from ``dataset``'s frames ``ids`` at their known poses
+    (as ``estimate_poses`` does for a posed capture, without writing one): what a splat run
+    of a capture without points starts from.
+
+    Raises
+    ------
+    InputError
+        Without pycolmap (the ``poses`` extra), with fewer than ``MIN_PHOTOS`` frames, or
+        when no point triangulates.
+    """
+    pycolmap = import_pycolmap()
+    with tempfile.TemporaryDirectory(prefix="nerf-stage-points-") as work:
+        _, _, reconstruction = _triangulated(pycolmap, dataset, list(ids), Path(work), "auto",
+                                             progress, {})
+        return _points(reconstruction)
+
+
+def _points(reconstruction) -> Points:
+    """A pycolmap reconstruction's 3D points and their colours."""
+    points = list(reconstruction.points3D.values())
+    return Points(np.array([p.xyz for p in points]).reshape(-1, 3),
+                  np.array([p.color for p in points], np.float32).reshape(-1, 3) / 255)
+
+
+def _triangulated(pycolmap, dataset: Dataset, ids: list[int], work: Path, matcher: str,
+                  progress: bool, seconds: dict):
+    """The frames ``ids`` of ``dataset`` as it reads them (undistorted) written as PNGs
+    (``work / "images"``, named by frame), matched, and the pycolmap reconstruction of their
+    points at the frames' poses (``triangulate_points``): names, folder, reconstruction."""
+    names = [f"{i:04d}.png" for i in ids]
+    if len(names) < MIN_PHOTOS:
+        raise InputError(f"{dataset.root} holds {len(names)} photo(s); triangulation needs at "
+                         f"least {MIN_PHOTOS}")
+    photos = work / "images"
+    photos.mkdir()
+    for name, i in zip(names, ids):
+        image, alpha = dataset.images[i], dataset.alpha[i]
+        rgba = np.concatenate([image, alpha[..., None]], -1) if (alpha < 1).any() else image
+        Image.fromarray((rgba * 255).round().astype(np.uint8)).save(photos / name)
+    database = _matched(pycolmap, photos, names, work, pycolmap.CameraMode.PER_IMAGE,
+                        "PINHOLE", matcher, progress, seconds)
+    start = time.perf_counter()
+    reconstruction = triangulate_points(pycolmap, dataset, ids, photos, names, database, work)
+    seconds["triangulation"] = time.perf_counter() - start
+    if not reconstruction.points3D:
+        raise InputError(f"no point could be triangulated from the {len(names)} photos of "
+                         f"{dataset.root} at their poses: they may overlap too little or "
+                         "lack texture")
+    return names, photos, reconstruction
 
 
 def _intrinsics(camera) -> dict:
@@ -272,21 +307,22 @@ def _intrinsics(camera) -> dict:
             "cx": camera.cx, "cy": camera.cy}
 
 
-def triangulate_points(pycolmap, dataset: Dataset, photos: Path, names: list[str],
-                       database: Path, work: Path):
-    """The pycolmap reconstruction of ``dataset``'s cameras and poses (pinhole, the images
-    ``names`` in ``photos`` at the dataset's size) with the points that COLMAP's
-    ``point_triangulator`` finds from the matches in ``database``, the poses held fixed.
+def triangulate_points(pycolmap, dataset: Dataset, ids: list[int], photos: Path,
+                       names: list[str], database: Path, work: Path):
+    """The pycolmap reconstruction of the cameras and poses of ``dataset``'s frames ``ids``
+    (pinhole, their images ``names`` in ``photos`` at the dataset's size) with the points
+    that COLMAP's ``point_triangulator`` finds from the matches in ``database``, the poses
+    held fixed.
     The model is written as COLMAP's text files with the database's image and camera ids
     (an image a camera, ``CameraMode.PER_IMAGE``)."""
     db = pycolmap.Database.open(database)
-    ids = {image.name: (image.image_id, image.camera_id) for image in db.read_all_images()}
+    ids_of = {image.name: (image.image_id, image.camera_id) for image in db.read_all_images()}
     db.close()
     model = work / "known"
     model.mkdir()
     cameras, images = [], []
-    for i, name in enumerate(names):
-        image_id, camera_id = ids[name]
+    for i, name in zip(ids, names):
+        image_id, camera_id = ids_of[name]
         c = dataset.camera(i)
         cameras.append(f"{camera_id} PINHOLE {c.width} {c.height} "
                        f"{_numbers(c.fx, c.fy, c.cx, c.cy)}\n")

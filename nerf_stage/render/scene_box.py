@@ -91,17 +91,23 @@ def box_from_dict(data, source: str) -> SceneBox:
 
 
 def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray,
-              space: str = "auto", resolution: int = 64) -> SceneBox:
+              space: str = "auto", resolution: int = 64, depth: float | None = None
+              ) -> SceneBox:
     """A box around what the cameras (``poses``, one ``intrinsics`` each) see.
 
     Starts from the cube around the point nearest to all optical axes, with half
-    size 0.75 x the nearest camera's distance. ``space`` ``unbounded`` keeps that cube, grown
-    where needed to bring every camera within ``CAMERA_REACH`` half sizes (cameras whose
-    axes do not meet, as on a walk down a street, can put that point beside one of
-    them), and contracts the rest of space around it; ``box`` ends the scene there and, when the
-    images have transparent pixels, shrinks the box to the visual hull carved from them;
-    ``auto`` is ``unbounded`` when every pixel is opaque (no view shows where the scene
-    ends), else ``box`` (training may still probe both: ``trainer.choose_scene_box``).
+    size 0.75 x the nearest camera's distance. Cameras that all face one way (a
+    forward-facing capture) have axes that meet nowhere in front of them: when that point
+    is not in front of them (``in_front``), the cube is centred ``depth`` (where the scene
+    is: twice an LLFF capture's near bound, or its points' median depth; by default the
+    cameras' spread) along their mean axis from their mean position. ``space``
+    ``unbounded`` keeps that cube, grown where needed to bring every camera within
+    ``CAMERA_REACH`` half sizes (cameras whose axes do not meet, as on a walk down a street,
+    can put that point beside one of them), and contracts the rest of space around it;
+    ``box`` ends the scene there and, when the images have transparent pixels, shrinks the
+    box to the visual hull carved from them; ``auto`` is ``unbounded`` when every pixel is
+    opaque (no view shows where the scene ends), else ``box`` (training may still probe
+    both: ``trainer.choose_scene_box``).
 
     Raises
     ------
@@ -113,6 +119,10 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     projector = np.eye(3) - axes[:, :, None] * axes[:, None, :]  # (N, 3, 3)
     centre = np.linalg.lstsq(projector.sum(0), np.einsum("nij,nj->i", projector, eyes),
                              rcond=None)[0]
+    if not in_front(centre, eyes, axes):
+        mean_axis = axes.mean(0) / max(np.linalg.norm(axes.mean(0)), 1e-12)
+        spread = np.linalg.norm(eyes - eyes.mean(0), axis=1).max()
+        centre = eyes.mean(0) + (depth or spread) * mean_axis
     half = 0.75 * np.linalg.norm(eyes - centre, axis=1).min()
     opaque = bool(alpha.min() >= OPAQUE_ALPHA)
     unbounded = space == "unbounded" or (space == "auto" and opaque)
@@ -132,6 +142,12 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     hi = centre - half + (cells.max(0) + 2) * cell
     lo, hi = np.maximum(lo, centre - half), np.minimum(hi, centre + half)
     return SceneBox((lo + hi) / 2, (hi - lo) / 2)
+
+
+def in_front(point: np.ndarray, eyes: np.ndarray, axes: np.ndarray) -> bool:
+    """Whether ``point`` lies in front of most cameras (``eyes``, unit ``axes`` (N, 3)): its
+    median depth along their axes is positive."""
+    return bool(np.median(np.einsum("ni,ni->n", point - eyes, axes)) > 0)
 
 
 def visual_hull(box: SceneBox, resolution: np.ndarray, poses: np.ndarray,

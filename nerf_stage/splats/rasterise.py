@@ -24,17 +24,15 @@ import torch
 from tqdm import tqdm
 
 from ..data.cameras import Intrinsics
+from . import tiles
 from .model import Splats
+from .tiles import MAX_ALPHA, MIN_TRANSMITTANCE
 
 #: Pixels^2 added to every projected covariance: Mip-Splatting's 2D filter. (3D Gaussian
 #: splatting's 0.3, which viser adds at the screen's resolution, let splats fitted at the
 #: training views' resolution lean on that blur to cover surfaces: holes where a browser
 #: draws them finer; docs/splats.md.)
 LOW_PASS = 0.1
-#: Pairs behind which less light than this is left are not drawn (3D Gaussian splatting's
-#: early stop): a pixel changes by less than this.
-MIN_TRANSMITTANCE = 1e-4
-MAX_ALPHA = 0.99  # no splat is more opaque than this at its peak (3D Gaussian splatting's)
 #: Splats nearer to the camera than this (in the splats' units; the scene box's half size
 #: for a splat run) are not drawn: their projection's Jacobian grows as 1 / depth^2.
 NEAR = 0.01
@@ -44,6 +42,9 @@ FOV_CLAMP = 1.3  # of the view's half angle, where the Jacobian is taken at most
 #: (docs/decisions/0013-rasteriser-bands.md). On CUDA a view is one band: its memory holds
 #: the pairs, and every band would add its kernel launches and synchronisations to a step.
 BAND_PIXELS = 1 << 14
+#: Whether a CPU draws through the tile kernels (``tiles``); False: through pairs in PyTorch,
+#: a band at a time, as CUDA does and as the palette stage's footprints are made.
+TILED = True
 
 
 @torch.no_grad()
@@ -96,7 +97,14 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     and contribution (transmittance x alpha) of every pair drawn, by pixel, front to back."""
     window = window or (0, 0, camera.width, camera.height)
     pixels = window[2] * window[3]
-    found = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
+    if TILED and not centres.is_cuda and not keep_pairs:
+        projected = _project(centres, covariances, opacities, pose, camera, reach, info, window)
+        if projected is not None:
+            table, box, index, order = projected
+            return _TileComposite.apply(table, values, box, index, order, window, info)
+        found = None
+    else:
+        found = _pairs(centres, covariances, opacities, pose, camera, reach, info, window)
     if found is None:
         if info is not None:
             info["drawn"] = torch.zeros(0, dtype=torch.long, device=centres.device)
@@ -167,6 +175,46 @@ class _Composite(torch.autograd.Function):
                 -0.5 * grad_power * dx * dx, -grad_power * dx * dy,
                 -0.5 * grad_power * dy * dy, grad_peak], 1))
         return grad_table, grad_values, None, None, None, None, None, None
+
+
+class _TileComposite(torch.autograd.Function):
+    """``_Composite`` on a CPU through the tile kernels of ``tiles``: (pixels, M) values and
+    (pixels,) opacity of a view's ``window`` from the projections ``table`` (F, 6), their
+    ``box`` (F, 5), the splats' ``index`` (F,) and the ``order`` (D,) of the rows that
+    show, front to back; nothing is held per pair, the backward walks the tiles again.
+    ``info["drawn"]`` receives the splats with a pair."""
+
+    @staticmethod
+    def forward(ctx, table, values, box, index, order, window, info):
+        left, top, width, height = window
+        tiles_x, tiles_y = -(-width // tiles.TILE), -(-height // tiles.TILE)
+        arrays = (table.detach().numpy(), np.ascontiguousarray(box[:, :4].numpy(), np.float64),
+                  values.detach().numpy(), index.numpy())
+        starts, ids = tiles.bin_tiles(arrays[1], order.numpy(), left, top, tiles_x, tiles_y)
+        pixels = width * height
+        drawn, opacity = np.zeros((pixels, values.shape[1])), np.zeros(pixels)
+        last, final = np.empty(pixels, np.int64), np.empty(pixels)
+        shown = np.zeros(len(table), np.bool_)
+        tiles.forward(*arrays, starts, ids, window, tiles_x, drawn, opacity, last, final, shown)
+        if info is not None:
+            info["drawn"] = index[torch.from_numpy(shown)]
+        ctx.kernel = (*arrays, starts, ids, window, tiles_x, last, final)
+        ctx.shapes = table.shape, values.shape
+        return (torch.from_numpy(drawn).to(values.dtype),
+                torch.from_numpy(opacity).to(values.dtype))
+
+    @staticmethod
+    def backward(ctx, grad_drawn, grad_opacity):
+        geometry = ctx.needs_input_grad[0]
+        (table_shape, values_shape), chunks = ctx.shapes, tiles.chunks()
+        grad_table = np.zeros((chunks if geometry else 1, *table_shape))
+        grad_values = np.zeros((chunks, *values_shape))
+        tiles.backward(*ctx.kernel, np.ascontiguousarray(grad_drawn.numpy(), np.float64),
+                       np.ascontiguousarray(grad_opacity.numpy(), np.float64), geometry,
+                       grad_table, grad_values)
+        dtype = grad_drawn.dtype
+        return (torch.from_numpy(grad_table.sum(0)).to(dtype) if geometry else None,
+                torch.from_numpy(grad_values.sum(0)).to(dtype), None, None, None, None, None)
 
 
 class _Blend(NamedTuple):
@@ -245,6 +293,27 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     ``MIN_TRANSMITTANCE`` of light left in front of them, sorted by pixel (of the window),
     then front to back, and that light (detached); None when no splat shows (``draw``'s
     ``info`` filled on the way)."""
+    projected = _project(centres, covariances, opacities, pose, camera, reach, info, window)
+    if projected is None:
+        return None
+    table, box, index, drawn = projected
+    left, top, width, height = window
+    rows = height if centres.is_cuda else max(1, BAND_PIXELS // width)
+    bands = [_band(table, box, drawn, window, y, min(y + rows, top + height))
+             for y in range(top, top + height, rows)]
+    bands = [band for band in bands if band is not None]
+    if not bands:
+        return None
+    pixel, ids, light = (torch.cat(part) for part in zip(*bands))
+    return table, index, pixel, ids, light, tuple(len(band[0]) for band in bands)
+
+
+def _project(centres, covariances, opacities, pose, camera: Intrinsics, reach: int | None,
+             info: dict | None, window: tuple[int, int, int, int]):
+    """Each splat in front of the camera projected (``table`` (F, 6): centre u, v, inverse
+    covariance a, b, c, peak opacity; with gradients), its ``box`` (F, 5): x0, x1, y0, y1
+    in the ``window`` and the Mahalanobis ``level`` of alpha 1/255, the splats' ``index``
+    (F,) and the rows that show, front to back; None when none shows."""
     left, top, width, height = window
     pose = pose.to(centres.dtype)
     rotation, origin = pose[:3, :3], pose[:3, 3]
@@ -298,15 +367,7 @@ def _pairs(centres, covariances, opacities, pose, camera: Intrinsics, reach: int
     # each splat's projection (u, v, conic, opacity), gathered with gradients only for the
     # pairs that show
     table = torch.cat([u[:, None], v[:, None], conic, opacities[:, None]], 1)
-    box = torch.stack([x0, x1, y0, y1, level], 1)
-    rows = height if centres.is_cuda else max(1, BAND_PIXELS // width)
-    bands = [_band(table, box, drawn, window, y, min(y + rows, top + height))
-             for y in range(top, top + height, rows)]
-    bands = [band for band in bands if band is not None]
-    if not bands:
-        return None
-    pixel, ids, light = (torch.cat(part) for part in zip(*bands))
-    return table, index, pixel, ids, light, tuple(len(band[0]) for band in bands)
+    return table, torch.stack([x0, x1, y0, y1, level], 1), index, drawn
 
 
 @torch.no_grad()

@@ -142,6 +142,10 @@ class TrainConfig:
     """Wall-clock limit of two-stage pretraining (0: P / (P + F) of ``minutes``), at most
     ``minutes``: with it, fine-tuning planned longer than the time left is ended by the
     clock whatever P / (P + F) is (docs/decisions/0006-minutes.md)."""
+    fill_minutes: bool = True
+    """Under ``minutes``, plan the iterations to fill the budget (``budget.planned``: a short
+    probe's rate, with room to spare), so that the clock ends every stage and the iterations
+    set only the stages' shares; false: a stage that reaches its iterations first ends."""
     def __post_init__(self):
         self.backbone = member(Backbone, self.backbone, "backbone")
         self.strategy = member(Strategy, self.strategy, "strategy")
@@ -153,8 +157,9 @@ class TrainConfig:
                       "distortion_weight", "depth_weight", "near_gradient", "minutes",
                       "pretrain_minutes")
         positive(self, "lr_decay")
-        if not isinstance(self.appearance, bool):
-            raise InputError(f"appearance must be true or false, got {self.appearance!r}")
+        for name in ("appearance", "fill_minutes"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"{name} must be true or false, got {getattr(self, name)!r}")
         integers(self, 0, MAX_ITERS, "pretrain_iters", "finetune_iters")
         integers(self, 1, 1 << 20, "batch_rays")
         integers(self, 1, 8, "supersampling")
@@ -269,7 +274,7 @@ class TrainConfig:
 
 #: Fields added to ``TrainConfig`` with a default that earlier runs did not train with: the
 #: value a run folder's ``config.json`` without them stands for.
-SAVED_WITHOUT = {"appearance": False, "depth_weight": 0.0}
+SAVED_WITHOUT = {"appearance": False, "depth_weight": 0.0, "fill_minutes": False}
 
 #: The nested backbone settings of ``TrainConfig``, by field name.
 _NESTED = dict(SETTINGS)

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import os
 import resource
+import tempfile
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -31,6 +33,7 @@ from ..data.dataset import Dataset, join_weights, load_dataset
 from ..fields import RGB, make_field
 from ..render.occupancy import OccupancyGrid
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
+from . import budget
 from .appearance import Appearance
 from .checkpoint import CHECKPOINT, load_optimisers, read_checkpoint
 from .config import Space, Strategy, TrainConfig
@@ -129,10 +132,60 @@ def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: st
            device: torch.device | None) -> Run:
     device = device or default_device()
     rundir = Path(rundir)
-    weights, state = training_targets(config, dataset, stack, rundir, resume, force)
+    config, weights, state = training_targets(config, dataset, stack, rundir, resume, force)
     train_ids = dataset.indices("train")
+    if (state is None and dataset.points is None
+            and getattr(config.backbone_config, "triangulate", False)):
+        dataset = _with_points(dataset, train_ids, progress)
     box = (box_from_dict(state["box"], str(rundir / CHECKPOINT)) if resume else
            choose_scene_box(config, dataset, stack, train_ids, weights, device, progress))
+    if state is None and budget.needs_plan(config):
+        config = _planned(config, dataset, stack, rundir, weights, box, device, progress)
+    return _train_in_box(config, dataset, stack, rundir, weights, state, box, weights_path,
+                         progress, device)
+
+
+def _with_points(dataset: Dataset, train_ids, progress: bool) -> Dataset:
+    """``dataset`` with sparse points triangulated from its training views at their poses
+    (``sfm.points_from_poses``), for a backbone that starts from them; as it is, with a
+    warning, when none can be (no pycolmap, too few views, no match)."""
+    from ..data.sfm import points_from_poses
+
+    try:
+        points = points_from_poses(dataset, train_ids, progress)
+    except InputError as error:
+        warnings.warn(f"the capture has no sparse points and none could be triangulated "
+                      f"({error}): the splats start where the views look", stacklevel=2)
+        return dataset
+    if progress:
+        tqdm.write(f"triangulated {len(points)} sparse points from the {len(train_ids)} "
+                   "training views' poses")
+    return replace(dataset, points=points)
+
+
+def _planned(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: Path,
+             weights: np.ndarray, box: SceneBox, device, progress: bool) -> TrainConfig:
+    """``config`` with its iterations planned for its ``minutes`` from a probe of its first
+    stage trained beside ``rundir`` (``budget``)."""
+    rundir.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".plan-", dir=rundir.parent) as folder:
+        probe = _train_in_box(budget.probe_config(config), dataset, stack, Path(folder) / "run",
+                              weights, None, box, "", False, device)
+        rate = budget.probe_rate(probe.record.log)
+    planned = budget.planned(config, rate)
+    if progress:
+        tqdm.write(f"planned {planned.pretrain_iters} + {planned.finetune_iters} iterations "
+                   f"for {config.minutes:g} minutes ({rate:.2f} it/s in a probe of "
+                   f"{budget.PROBE_ITERS}): the clock ends each stage")
+    return planned
+
+
+def _train_in_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: Path,
+                  weights: np.ndarray, state: dict | None, box: SceneBox, weights_path: str,
+                  progress: bool, device) -> Run:
+    """``train`` once the targets are joined and the box chosen."""
+    train_ids = dataset.indices("train")
+    resume = state is not None
     spec = BACKBONES[config.backbone]
     if not spec.is_field:
         return spec.module().train(config, dataset, stack, rundir, weights, state, box,
@@ -162,20 +215,24 @@ def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: st
 
 
 def training_targets(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: Path,
-                     resume: bool, force: bool) -> tuple[np.ndarray, dict | None]:
+                     resume: bool, force: bool) -> tuple[TrainConfig, np.ndarray, dict | None]:
     """What every backbone's training starts from, once ``rundir`` is as ``resume`` and
-    ``force`` ask (``check_rundir``): the (n, H, W, M) weights of the training frames
-    (premultiplied by alpha for the additive basis) and, when resuming, the checkpoint's
-    state, whose config must train like ``config``."""
+    ``force`` ask (``check_rundir``): the config (when resuming, the checkpoint's, which
+    must train like ``config`` or be its plan: ``budget.plans_like``), the (n, H, W, M)
+    weights of the training frames (premultiplied by alpha for the additive basis) and,
+    when resuming, the checkpoint's state."""
     check_rundir(rundir, resume, force)
     weights = join_weights(dataset, stack, "train")
     if stack.basis == Basis.ADDITIVE:
         weights = weights * dataset.alpha[dataset.indices("train"), ..., None]
     state = read_checkpoint(rundir / CHECKPOINT) if resume else None
-    if resume and not TrainConfig.from_dict(state["config"]).trains_like(config):
-        raise InputError(f"{rundir} was trained with another config",
-                         fixes=[("force", "to start afresh")])
-    return weights, state
+    if resume:
+        saved = TrainConfig.from_dict(state["config"])
+        if not (saved.trains_like(config) or budget.plans_like(saved, config)):
+            raise InputError(f"{rundir} was trained with another config",
+                             fixes=[("force", "to start afresh")])
+        config = saved
+    return config, weights, state
 
 
 def peak_memory(device: torch.device) -> str:
@@ -199,10 +256,11 @@ def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, 
     what draws it."""
     poses, cameras, alpha = (dataset.poses[train_ids], dataset.cameras(train_ids),
                              dataset.alpha[train_ids])
-    box = scene_box(poses, cameras, alpha, config.space)
+    depth = scene_depth(dataset, train_ids)
+    box = scene_box(poses, cameras, alpha, config.space, depth=depth)
     if config.space != Space.AUTO or box.unbounded:
         return box
-    unbounded = scene_box(poses, cameras, alpha, Space.UNBOUNDED)
+    unbounded = scene_box(poses, cameras, alpha, Space.UNBOUNDED, depth=depth)
     iters = min(PROBE_ITERS, config.total_iters)
     field = config.backbone if BACKBONES[config.backbone].is_field else "grid"
     probe = replace(config, backbone=field, strategy=Strategy.RGB, pretrain_iters=iters,
@@ -210,6 +268,20 @@ def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, 
     fits = [_probe(probe, candidate, dataset, stack, train_ids, weights, device, progress)
             for candidate in (box, unbounded)]
     return unbounded if fits[1] >= fits[0] + PROBE_MARGIN else box
+
+
+def scene_depth(dataset: Dataset, train_ids) -> float | None:
+    """How far in front of its cameras a capture's scene lies, where the capture says: twice
+    the median near bound of an LLFF capture, else the median depth of its sparse points
+    along the mean optical axis (``scene_box``'s ``depth``); None without either."""
+    if dataset.bounds is not None:
+        return 2.0 * float(np.median(dataset.bounds[train_ids, 0]))
+    if dataset.points is None or not len(dataset.points):
+        return None
+    poses = dataset.poses[train_ids]
+    axis = -poses[:, :3, 2].mean(0)
+    axis /= max(np.linalg.norm(axis), 1e-12)
+    return float(np.median((dataset.points.positions - poses[:, :3, 3].mean(0)) @ axis))
 
 
 def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weights, device,
