@@ -126,16 +126,17 @@ def test_the_reported_pairs_make_up_the_view():
     assert 0 not in splat.tolist() and len(set(splat.tolist())) > 1
 
 
-def _random_scene(n=400, seed=1):
+def _random_scene(n=300, seed=1):
     """``n`` float32 splats about a 64 x 48 view: some behind the camera, some wider than
     the image, some nearly transparent, some nearly opaque; their parameters as leaves."""
     g = torch.Generator().manual_seed(seed)
     means = torch.randn(n, 3, generator=g) * torch.tensor([1.2, 1.0, 1.5])
     means[: n // 10, 2] = 3.5 + torch.rand(n // 10, generator=g)  # behind the camera at z 3
-    log_scales = torch.randn(n, 3, generator=g) * 0.6 - 2.5
-    log_scales[n // 10: n // 10 + 5] = 1.5  # wider than the image
+    log_scales = torch.randn(n, 3, generator=g) * 0.5 - 3.2
+    log_scales[n // 10: n // 10 + 3] = 1.5  # wider than the image
     quats = torch.randn(n, 4, generator=g)
     opacities = torch.rand(n, generator=g)
+    opacities[n // 10: n // 10 + 3] = 0.2
     values = torch.rand(n, 3, generator=g)
     return [t.requires_grad_() for t in (means, log_scales, quats, opacities, values)]
 
@@ -158,15 +159,15 @@ def _drawn_and_gradients(tiled, monkeypatch, reach):
 
 @pytest.mark.parametrize("reach", [None, 8])
 def test_the_tile_kernels_match_the_pairs_in_pytorch(monkeypatch, reach):
-    """On 400 random splats, in front of and behind the camera, wider than the image, cut
+    """On 300 random splats, in front of and behind the camera, wider than the image, cut
     off at a reach or not: the tile kernels' values, opacity and every gradient against
     the PyTorch pairs' within 1e-4 (of the largest), and the same splats drawn."""
     tiles = _drawn_and_gradients(True, monkeypatch, reach)
     pairs = _drawn_and_gradients(False, monkeypatch, reach)
-    assert tiles[1].max() > 0.5 and tiles[1].min() < 0.1  # covered and open parts
+    assert tiles[1].max() > 0.9 and tiles[1].min() < 0.5  # dense and sparser parts
     for a, b in [*zip(tiles[:2], pairs[:2]), *zip(tiles[2], pairs[2])]:
         assert torch.isfinite(a).all()
-        assert (a - b).abs().max() <= 1e-4 * max(1.0, float(b.abs().max()))
+        assert (a - b).abs().max() <= 1e-4 * max(1.0, float(b.detach().abs().max()))
     assert torch.equal(torch.sort(tiles[3]["drawn"]).values, torch.sort(pairs[3]["drawn"]).values)
     assert torch.allclose(tiles[3]["means2d"].grad, pairs[3]["means2d"].grad, atol=1e-4)
 

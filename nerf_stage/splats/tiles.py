@@ -7,7 +7,10 @@ covariance a, b, c and peak opacity; ``box`` (F, 4) the pixels x0 <= x < x1, y0 
 a splat may touch (its ellipse's box at alpha 1/255, cut at a reach); ``order`` the rows to
 draw, front to back. A pair (pixel, splat) counts when its alpha is at least 1/255 and at
 least ``MIN_TRANSMITTANCE`` of the pixel's light is left in front of it, as in
-``rasterise._band``. Arithmetic is float64; nothing is allocated per pair.
+``rasterise._band``. Within a tile the splats are taken in depth order, each over the
+pixels of its ellipse only, the tile's pixels keeping their light (gsplat walks pixels
+and tests every splat; without a GPU's threads, testing only the ellipse's pixels is what
+bounds the work by the pairs). Arithmetic is float64; nothing is allocated per pair.
 
 Kerbl et al. 3D Gaussian splatting for real-time radiance field rendering, SIGGRAPH 2023
 (tiles, per-tile depth order, the backward from the pixels' final transmittance); gsplat's
@@ -66,18 +69,45 @@ def _tile_range(b, left, top, tiles_x, tiles_y):
 
 
 @njit(cache=True, inline="always")
-def _alpha(row, b, px, py):
-    """Alpha of the splat projected as ``row`` at pixel (px, py), 0 outside its box ``b``
-    or below ``MIN_ALPHA``; and the offsets dx, dy and the Gaussian that make it."""
-    if px < b[0] or px >= b[1] or py < b[2] or py >= b[3]:
-        return 0.0, 0.0, 0.0, 0.0
-    dx = px + 0.5 - row[0]
+def _row_gaussian(row, dx, dy):
+    """The splat's Gaussian exp(-(a dx^2 + 2 b dx dy + c dy^2) / 2) at offset (dx, dy) and
+    the ratio to it of the Gaussian one pixel to the right; that ratio changes by exp(-a) a
+    pixel further: along a row, two products a pixel instead of an exponential."""
+    a, b, c = row[2], row[3], row[4]
+    gaussian = math.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
+    return gaussian, math.exp(-a * dx - 0.5 * a - b * dy)
+
+
+@njit(cache=True, inline="always")
+def _tile_rect(tile, tiles_x, window):
+    """The pixels x0 <= x < x1, y0 <= y < y1 of ``tile`` in ``window``."""
+    left, top, width, height = window
+    x0, y0 = left + (tile % tiles_x) * TILE, top + (tile // tiles_x) * TILE
+    return x0, min(x0 + TILE, left + width), y0, min(y0 + TILE, top + height)
+
+
+@njit(cache=True, inline="always")
+def _span(row, b, level, py, x0, x1):
+    """The pixels xa <= x < xb of row ``py`` (within x0..x1 and the splat's box ``b``) whose
+    centres may lie in the splat's ellipse at alpha ``MIN_ALPHA`` (one pixel of margin each
+    side; the alpha of each decides): where a dx^2 + 2 b dx dy + c dy^2 <= ``level``,
+    2 ln(255 peak)."""
     dy = py + 0.5 - row[1]
-    gaussian = math.exp(-0.5 * (row[2] * dx * dx + 2.0 * row[3] * dx * dy + row[4] * dy * dy))
-    alpha = min(MAX_ALPHA, row[5] * gaussian)
-    if alpha < MIN_ALPHA:
-        return 0.0, dx, dy, gaussian
-    return alpha, dx, dy, gaussian
+    room = (row[3] * dy) ** 2 - row[2] * (row[4] * dy * dy - level)
+    if room < 0.0:
+        return 0, 0
+    half = math.sqrt(room) / row[2]
+    middle = row[0] - 0.5 - row[3] * dy / row[2]  # pixel x at dx = -b dy / a
+    xa = max(x0, int(b[0]), int(math.floor(middle - half)) - 1)
+    xb = min(x1, int(b[1]), int(math.ceil(middle + half)) + 2)
+    return xa, xb
+
+
+@njit(cache=True, inline="always")
+def _level(row):
+    """2 ln(255 peak): the ellipse's level at alpha ``MIN_ALPHA``; below 0 the splat shows
+    nowhere."""
+    return 2.0 * math.log(255.0 * row[5]) if row[5] * 255.0 > 1.0 else -1.0
 
 
 @njit(cache=True, parallel=True)
@@ -87,30 +117,52 @@ def forward(table, box, values, index, starts, ids, window, tiles_x, drawn, opac
     (pixels, M) and ``opacity`` (pixels,) receive the sums of transmittance x alpha x
     values (``values`` (N, M) by splat, ``index`` (F,) a row's splat); ``last`` (pixels,)
     the end in ``ids`` of each pixel's pairs, ``final`` its transmittance behind them, for
-    the backward; ``shown`` (F,) is set where a splat has a pair."""
-    left, top, width, height = window
+    the backward; ``shown`` (F,) is set where a splat has a pair. A tile's splats are taken
+    in depth order, each over the pixels of its ellipse (``_span``), the tile's pixels
+    keeping their light: a pixel is left once its light is below ``MIN_TRANSMITTANCE``."""
+    left, top, width, _ = window
     for tile in prange(len(starts) - 1):
-        ty, tx = tile // tiles_x, tile % tiles_x
-        for py in range(top + ty * TILE, min(top + (ty + 1) * TILE, top + height)):
-            for px in range(left + tx * TILE, min(left + (tx + 1) * TILE, left + width)):
-                pixel = (py - top) * width + (px - left)
-                light, end = 1.0, starts[tile]
-                for j in range(starts[tile], starts[tile + 1]):
-                    s = ids[j]
-                    alpha, _, _, _ = _alpha(table[s], box[s], px, py)
-                    if alpha == 0.0:
+        x0, x1, y0, y1 = _tile_rect(tile, tiles_x, window)
+        light = np.ones(TILE * TILE)
+        end = np.full(TILE * TILE, starts[tile])
+        tile_drawn = np.zeros((TILE * TILE, values.shape[1]))
+        tile_opacity = np.zeros(TILE * TILE)
+        open_pixels = (x1 - x0) * (y1 - y0)
+        for j in range(starts[tile], starts[tile + 1]):
+            if open_pixels == 0:
+                break
+            s = ids[j]
+            row, b, splat = table[s], box[s], index[s]
+            level = _level(row)
+            if level < 0.0:
+                continue
+            step = math.exp(-row[2])
+            for py in range(max(y0, int(b[2])), min(y1, int(b[3]))):
+                xa, xb = _span(row, b, level, py, x0, x1)
+                if xa >= xb:
+                    continue
+                gaussian, ratio = _row_gaussian(row, xa + 0.5 - row[0], py + 0.5 - row[1])
+                for px in range(xa, xb):
+                    k = (py - y0) * TILE + px - x0
+                    alpha = min(MAX_ALPHA, row[5] * gaussian)
+                    gaussian, ratio = gaussian * ratio, ratio * step
+                    if light[k] < MIN_TRANSMITTANCE or alpha < MIN_ALPHA:
                         continue
-                    if light < MIN_TRANSMITTANCE:
-                        break
-                    weight = light * alpha
-                    splat = index[s]
+                    weight = light[k] * alpha
                     for m in range(values.shape[1]):
-                        drawn[pixel, m] += weight * values[splat, m]
-                    opacity[pixel] += weight
-                    light *= 1.0 - alpha
-                    end = j + 1
+                        tile_drawn[k, m] += weight * values[splat, m]
+                    tile_opacity[k] += weight
+                    light[k] *= 1.0 - alpha
+                    end[k] = j + 1
                     shown[s] = True
-                last[pixel], final[pixel] = end, light
+                    if light[k] < MIN_TRANSMITTANCE:
+                        open_pixels -= 1
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                k, pixel = (py - y0) * TILE + px - x0, (py - top) * width + px - left
+                last[pixel], final[pixel] = end[k], light[k]
+                drawn[pixel] = tile_drawn[k]
+                opacity[pixel] = tile_opacity[k]
 
 
 @njit(cache=True, parallel=True)
@@ -121,46 +173,74 @@ def backward(table, box, values, index, starts, ids, window, tiles_x, last, fina
     ``grad_values`` (C, N, M) and, with ``geometry``, ``grad_table`` (C, F, 6; else one
     unused slice), one slice for each of C chunks of the tiles (summed by the caller).
 
-    Each pixel's pairs are walked back to front from its final transmittance: the light in
-    front of pair i is that behind it over 1 - alpha_i, and d/d alpha_i of the pixel's sum
-    is light_i x q_i less what the pairs behind i send over 1 - alpha_i (q: the upstream
-    gradient's product with the pair's values, plus the opacity's); then through the clamp
-    at ``MAX_ALPHA``, the peak opacity and the Gaussian's exponent."""
-    left, top, width, height = window
+    A tile's splats are walked back to front, each over its ellipse's pixels, each pixel
+    from its final transmittance: the light in front of pair i is that behind it over
+    1 - alpha_i, and d/d alpha_i of the pixel's sum is light_i x q_i less what the pairs
+    behind i send over 1 - alpha_i (q: the upstream gradient's product with the pair's
+    values, plus the opacity's); then through the clamp at ``MAX_ALPHA``, the peak opacity
+    and the Gaussian's exponent."""
+    left, top, width, _ = window
     chunks = grad_values.shape[0]
     n_tiles = len(starts) - 1
     for chunk in prange(chunks):
-        g_table = grad_table[min(chunk, grad_table.shape[0] - 1)]
+        g_table = grad_table[0] if grad_table.shape[0] == 1 else grad_table[chunk]
         g_values = grad_values[chunk]
+        light, behind = np.empty(TILE * TILE), np.empty(TILE * TILE)
+        tile_last = np.empty(TILE * TILE, np.int64)
+        tile_up = np.empty((TILE * TILE, values.shape[1] + 1))  # upstream, opacity's last
+        splat_grad, value_grad = np.empty(6), np.empty(values.shape[1])
         for tile in range(chunk, n_tiles, chunks):
-            ty, tx = tile // tiles_x, tile % tiles_x
-            for py in range(top + ty * TILE, min(top + (ty + 1) * TILE, top + height)):
-                for px in range(left + tx * TILE, min(left + (tx + 1) * TILE, left + width)):
-                    pixel = (py - top) * width + (px - left)
-                    light, behind = final[pixel], 0.0
-                    up_opacity = grad_opacity[pixel]
-                    for j in range(last[pixel] - 1, starts[tile] - 1, -1):
-                        s = ids[j]
-                        alpha, dx, dy, gaussian = _alpha(table[s], box[s], px, py)
-                        if alpha == 0.0:
+            x0, x1, y0, y1 = _tile_rect(tile, tiles_x, window)
+            for py in range(y0, y1):
+                for px in range(x0, x1):
+                    k, pixel = (py - y0) * TILE + px - x0, (py - top) * width + px - left
+                    light[k], behind[k], tile_last[k] = final[pixel], 0.0, last[pixel]
+                    tile_up[k, :-1] = grad_drawn[pixel]
+                    tile_up[k, -1] = grad_opacity[pixel]
+            for j in range(starts[tile + 1] - 1, starts[tile] - 1, -1):
+                s = ids[j]
+                row, b, splat = table[s], box[s], index[s]
+                level = _level(row)
+                if level < 0.0:
+                    continue
+                step = math.exp(-row[2])
+                splat_grad[:] = 0.0
+                value_grad[:] = 0.0
+                for py in range(max(y0, int(b[2])), min(y1, int(b[3]))):
+                    xa, xb = _span(row, b, level, py, x0, x1)
+                    if xa >= xb:
+                        continue
+                    dy = py + 0.5 - row[1]
+                    next_gaussian, ratio = _row_gaussian(row, xa + 0.5 - row[0], dy)
+                    for px in range(xa, xb):
+                        gaussian = next_gaussian
+                        alpha = min(MAX_ALPHA, row[5] * gaussian)
+                        next_gaussian, ratio = gaussian * ratio, ratio * step
+                        k = (py - y0) * TILE + px - x0
+                        if j >= tile_last[k] or alpha < MIN_ALPHA:
                             continue
-                        light /= 1.0 - alpha
-                        weight = light * alpha
-                        splat = index[s]
-                        q = up_opacity
+                        keep = 1.0 / (1.0 - alpha)
+                        light[k] *= keep
+                        weight = light[k] * alpha
+                        q = tile_up[k, -1]
                         for m in range(values.shape[1]):
-                            g_values[splat, m] += weight * grad_drawn[pixel, m]
-                            q += grad_drawn[pixel, m] * values[splat, m]
+                            value_grad[m] += weight * tile_up[k, m]
+                            q += tile_up[k, m] * values[splat, m]
                         if geometry:
-                            grad_alpha = light * q - behind / (1.0 - alpha)
-                            _add_table_gradient(g_table[s], table[s], alpha, dx, dy,
-                                                gaussian, grad_alpha)
-                        behind += weight * q
+                            _add_table_gradient(splat_grad, row, alpha, px + 0.5 - row[0], dy,
+                                                gaussian, light[k] * q - behind[k] * keep)
+                        behind[k] += weight * q
+                for m in range(values.shape[1]):
+                    g_values[splat, m] += value_grad[m]
+                if geometry:
+                    for n in range(6):
+                        g_table[s, n] += splat_grad[n]
 
 
 @njit(cache=True, inline="always")
 def _add_table_gradient(out, row, alpha, dx, dy, gaussian, grad_alpha):
-    """Add to ``out`` (6,) d alpha / d row times ``grad_alpha`` (``_alpha``'s chain)."""
+    """Add to ``out`` (6,) d alpha / d row times ``grad_alpha``: through the clamp at
+    ``MAX_ALPHA``, the peak opacity and the Gaussian's exponent."""
     if alpha >= MAX_ALPHA:
         return
     grad_peak = grad_alpha * gaussian
