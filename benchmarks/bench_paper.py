@@ -24,7 +24,8 @@ a picture a run (``OUT/SCENE-RUN.png``: truth | render | error x 4) and, with
 (``OUT/SCENE-curve.png``).
 
     python benchmarks/bench_paper.py ROOT [--scenes lego flower orchids]
-        [--backbones grid splats] [--rgb-backbone splats] [--minutes 20] [--curve-every 2000]
+        [--backbones grid splats] [--rgb-backbone splats] [--runs SCENE:RUN ...]
+        [--minutes 20] [--curve-every 2000]
 """
 
 from __future__ import annotations
@@ -139,18 +140,26 @@ def main() -> None:
     parser.add_argument("--lego-downscale", type=int, default=4)
     parser.add_argument("--lego-every", type=int, default=8)
     parser.add_argument("--llff-downscale", type=int, default=8)
+    parser.add_argument("--runs", nargs="+", metavar="SCENE:RUN",
+                        help="these runs only (RUN: a backbone, or BACKBONE-rgb), instead of "
+                             "every scene with every backbone")
     parser.add_argument("--curve-every", type=int, default=2000,
                         help="iterations between the checkpoints scored for the curves (0: "
                              "none)")
     args = parser.parse_args()
-    runs = [(b, "two-stage") for b in args.backbones]
-    runs += [(args.rgb_backbone, "rgb")] if args.rgb_backbone != "none" else []
+    names = [*args.backbones, *([f"{args.rgb_backbone}-rgb"] if args.rgb_backbone != "none"
+                                else [])]
+    runs = ([tuple(run.split(":")) for run in args.runs] if args.runs else
+            [(scene, name) for scene in args.scenes for name in names])
+    if any(len(run) != 2 or run[0] not in SCENES for run in runs):
+        parser.error(f"--runs are SCENE:RUN with a scene of {', '.join(SCENES)}")
     results, rows = {}, []
-    for scene in args.scenes:
+    for scene in dict.fromkeys(scene for scene, _ in runs):
         data_dir = prepared(args.root, scene, args.out / scene, args)
         results[scene] = {}
-        for backbone, strategy in runs:
-            name = f"{backbone}" + ("-rgb" if strategy == "rgb" else "")
+        for name in [name for other, name in runs if other == scene]:
+            backbone, _, rgb = name.partition("-")
+            strategy = "rgb" if rgb else "two-stage"
             config = TrainConfig(backbone=backbone, strategy=strategy, minutes=args.minutes,
                                  checkpoint_every=args.curve_every or 10**6)
             result = scored(data_dir, args.out / f"{scene}-{name}", config,

@@ -132,11 +132,11 @@ def measure(mode: str, args) -> dict:
 
 def count_pairs(model, pose, camera, reach) -> int:
     """The pairs a draw of the view blends (the PyTorch path's kept pairs)."""
-    from nerf_stage.splats import rasterise
+    from nerf_stage.splats.pairs import pairs
 
     covariance, opacity = model.gaussians()
-    found = rasterise._pairs(model.means, covariance, opacity, pose, camera, reach, None,
-                             (0, 0, camera.width, camera.height))
+    found = pairs(model.means, covariance, opacity, pose, camera, reach, None,
+                  (0, 0, camera.width, camera.height))
     return 0 if found is None else int(sum(found[-1]))
 
 

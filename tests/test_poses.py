@@ -143,7 +143,7 @@ def test_a_walk_forward_registers_with_sequential_matching(tmp_path):
     assert rotation.max() < 3.0 and centre.max() < 0.1
 
 
-def _posed(corner, posed):
+def _posed_corner(corner, posed):
     """The corner's photos with their true poses (nerfstudio's ``transforms.json``, every
     other photo held out by name), no points."""
     folder, poses = corner
@@ -169,7 +169,7 @@ def test_a_posed_capture_keeps_its_poses_and_gets_points_on_its_surfaces(corner,
     they lie on the room corner's floor and walls, in the frame of the poses, which the
     capture keeps."""
     _, poses = corner
-    posed = _posed(corner, tmp_path / "posed")
+    posed = _posed_corner(corner, tmp_path / "posed")
     out = tmp_path / "capture"
     assert nerf_stage(["poses", str(posed), "-o", str(out)]) == 0
     dataset = load_dataset(out)
@@ -189,7 +189,7 @@ def test_a_splat_run_of_a_posed_capture_without_points_starts_at_triangulated_on
     from nerf_stage.data.sfm import points_from_poses
     from nerf_stage.train import trainer
 
-    posed = _posed(corner, tmp_path / "posed")
+    posed = _posed_corner(corner, tmp_path / "posed")
     dataset = load_dataset(posed)
     points = points_from_poses(dataset, dataset.indices("train"), progress=False)
     assert len(points) > 50 and np.median(_on_the_corner(points.positions)) < 0.02
@@ -203,7 +203,8 @@ def test_a_splat_run_of_a_posed_capture_without_points_starts_at_triangulated_on
         assert nerf_stage(["train", str(posed), "--backbone", "splats", "-o",
                            str(tmp_path / "run"), "--force", "--pretrain-iters", "2",
                            "--finetune-iters", "2", *flags]) == 0
-    assert len(started[0]) == len(points) and started[1] is None
+    assert abs(len(started[0]) - len(points)) <= 0.05 * len(points) and started[1] is None
+    assert np.median(_on_the_corner(started[0].positions)) < 0.02
 
 
 def test_text_and_binary_models_read_the_same(capture, tmp_path):

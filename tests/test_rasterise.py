@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nerf_stage.splats import rasterise  # noqa: E402
+from nerf_stage.splats import pairs, rasterise  # noqa: E402
 from nerf_stage.splats.model import covariances  # noqa: E402
 from nerf_stage.splats.rasterise import LOW_PASS, MAX_ALPHA, MIN_TRANSMITTANCE, draw  # noqa: E402
 
@@ -52,7 +52,7 @@ def bands(request, monkeypatch):
     (``BAND_PIXELS``)."""
     monkeypatch.setattr(rasterise, "TILED", request.param == "tiles")
     if request.param.endswith("rows"):
-        monkeypatch.setattr(rasterise, "BAND_PIXELS", 3 * CAMERA.width)
+        monkeypatch.setattr(pairs, "BAND_PIXELS", 3 * CAMERA.width)
 
 
 def test_the_rasteriser_matches_a_brute_force_sum_over_every_pixel(bands):

@@ -253,7 +253,7 @@ def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, 
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "8", "--finetune-iters", "4",
              "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6"]
     assert main(["train", str(root), "-o", str(tmp_path / "a"), *flags]) == 0
-    assert "nerf-stage poses" in capsys.readouterr().out  # how to give it points
+    assert "the splats start where the views look" in capsys.readouterr().err  # no points
     assert main(["train", str(root), "-o", str(tmp_path / "a"), *flags, "--resume"]) == 0
     assert load_run(tmp_path / "a").record.iteration == 12
 

@@ -7,7 +7,7 @@ covariance a, b, c and peak opacity; ``box`` (F, 4) the pixels x0 <= x < x1, y0 
 a splat may touch (its ellipse's box at alpha 1/255, cut at a reach); ``order`` the rows to
 draw, front to back. A pair (pixel, splat) counts when its alpha is at least 1/255 and at
 least ``MIN_TRANSMITTANCE`` of the pixel's light is left in front of it, as in
-``rasterise._band``. Within a tile the splats are taken in depth order, each over the
+``pairs._band``. Within a tile the splats are taken in depth order, each over the
 pixels of its ellipse only, the tile's pixels keeping their light (gsplat walks pixels
 and tests every splat; without a GPU's threads, testing only the ellipse's pixels is what
 bounds the work by the pairs). Arithmetic is float64; nothing is allocated per pair.
