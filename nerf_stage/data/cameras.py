@@ -72,6 +72,9 @@ class Intrinsics:
                              f"positive (at most {MAX_CAMERA_PIXELS} pixels), focal lengths "
                              "finite and positive, the principal point finite and near the "
                              "image")
+        # plain numbers: a camera is written into JSON and checkpoints read as data
+        self.width, self.height = int(w), int(h)
+        self.fx, self.fy, self.cx, self.cy = float(fx), float(fy), float(cx), float(cy)
 
     def downscaled(self, factor: int) -> Intrinsics:
         """The camera of images ``factor`` times smaller (whole pixels, as ``data`` crops
