@@ -281,6 +281,8 @@ def test_an_llff_capture_is_read_with_its_split_bounds_and_poses(tmp_path, rng):
     assert dataset.layout == "llff" and dataset.names[0] == "images_2/IMG_0000.png"
     assert [i for i, s in enumerate(dataset.splits) if s == "test"] == [0, 8]  # llffhold
     assert dataset.intrinsics.width == 8 and dataset.intrinsics.fx == pytest.approx(10.0)
+    # plain numbers, as a checkpoint read as data needs them (numpy's were refused)
+    assert {type(v) for v in vars(dataset.intrinsics).values()} == {int, float}
     factor = 1 / (bounds.min() * 0.75)
     np.testing.assert_allclose(dataset.bounds, bounds * factor)
     assert dataset.bounds.min() == pytest.approx(1 / 0.75)
