@@ -2,7 +2,7 @@
 blended front to back and, backwards, their gradients, compiled with numba and run in
 parallel over tiles (gsplat's design, on the CPU).
 
-Splats come as ``rasterise``'s projections: ``table`` (F, 6) rows of centre u, v, inverse
+Splats come as ``projection.project`` makes them: ``table`` (F, 6) rows of centre u, v, inverse
 covariance a, b, c and peak opacity; ``box`` (F, 4) the pixels x0 <= x < x1, y0 <= y < y1
 a splat may touch (its ellipse's box at alpha 1/255, cut at a reach); ``order`` the rows to
 draw, front to back. A pair (pixel, splat) counts when its alpha is at least 1/255 and at
