@@ -48,6 +48,8 @@ from nerf_stage.train.loading import load_run
 from nerf_stage.train.metrics import image_scores
 from nerf_stage.train.trainer import train
 from palette_core.cli.decompose import main as decompose
+from palette_core.folders import files_in
+from palette_core.outputs import publish_folder
 from palette_core.stack import read_stack
 
 SCENES = ("lego", "flower", "orchids")
@@ -61,14 +63,12 @@ def prepared(root: Path, scene: str, out: Path, args) -> Path:
     """``scene`` of ``root`` written into ``out`` at the benchmark's size, with its stack."""
     if (out / "weights.npz").is_file():
         return out
-    tmp = out.with_name(out.name + ".part")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    photos = (_nerf_synthetic(root / scene, tmp, args.lego_downscale, args.lego_every)
-              if scene == "lego" else _llff(root / scene, tmp, args.llff_downscale))
-    if decompose([str(photos), "-k", "6", "-o", str(tmp / "weights.npz")]) != 0:
-        sys.exit(f"palette-decompose failed on {photos}")
-    tmp.rename(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with publish_folder(out) as staging:
+        photos = (_nerf_synthetic(root / scene, staging, args.lego_downscale, args.lego_every)
+                  if scene == "lego" else _llff(root / scene, staging, args.llff_downscale))
+        if decompose([str(photos), "-k", "6", "-o", str(staging / "weights.npz")]) != 0:
+            sys.exit(f"palette-decompose failed on {photos}")
     return out
 
 
@@ -97,11 +97,12 @@ def _llff(source: Path, out: Path, factor: int) -> Path:
     (Lanczos)."""
     shutil.copy(source / "poses_bounds.npy", out / "poses_bounds.npy")
     target = out / f"images_{factor}"
-    if (source / f"images_{factor}").is_dir():
-        shutil.copytree(source / f"images_{factor}", target)
-        return target
     target.mkdir()
-    for i, path in enumerate(sorted(p for p in (source / "images").iterdir() if p.is_file())):
+    if (source / f"images_{factor}").is_dir():  # its files only: a link out is refused
+        for path in files_in(source / f"images_{factor}", recursive=False):
+            shutil.copyfile(path, target / path.name)
+        return target
+    for i, path in enumerate(files_in(source / "images", recursive=False)):
         image = Image.open(path).convert("RGB")
         image.resize((image.width // factor, image.height // factor), Image.LANCZOS).save(
             target / f"image{i:03d}.png")
