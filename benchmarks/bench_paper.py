@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 from bench_scenes import Snapshots, checkpoint_curve, curve_picture, error_map, rendered
 from PIL import Image
-from results import table, write_result
+from results import RESULTS, commit, table, write_result
 
 from nerf_stage.data.dataset import load_dataset
 from nerf_stage.train.config import TrainConfig
@@ -154,10 +154,10 @@ def main() -> None:
             [(scene, name) for scene in args.scenes for name in names])
     if any(len(run) != 2 or run[0] not in SCENES for run in runs):
         parser.error(f"--runs are SCENE:RUN with a scene of {', '.join(SCENES)}")
-    results, rows = {}, []
+    results = earlier_results()
     for scene in dict.fromkeys(scene for scene, _ in runs):
         data_dir = prepared(args.root, scene, args.out / scene, args)
-        results[scene] = {}
+        results.setdefault(scene, {})
         for name in [name for other, name in runs if other == scene]:
             backbone, _, rgb = name.partition("-")
             strategy = "rgb" if rgb else "two-stage"
@@ -165,20 +165,28 @@ def main() -> None:
                                  checkpoint_every=args.curve_every or 10**6)
             result = scored(data_dir, args.out / f"{scene}-{name}", config,
                             bool(args.curve_every))
-            results[scene][name] = result
+            results[scene][name] = {**result, "minutes": args.minutes, "commit": commit()}
             print(f"{scene} {name}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f} on "
                   f"{result['views']} views at {result['size']}; {result['iterations']} "
                   f"iterations in {result['seconds']:.0f} s", flush=True)
-            rows.append([scene, result["size"], name, round(result["psnr"], 2),
-                         round(result["ssim"], 3), result["iterations"],
-                         round(result["seconds"] / 60, 1), *PAPER[scene][1], *PAPER[scene][0]])
         if args.curve_every:
             curve_picture(results[scene], f"{scene}, held-out views",
                           args.out / f"{scene}-curve.png")
-    made = table(f"Held-out views, {args.minutes:g} minutes a run",
+    rows = [[scene, run["size"], name, round(run["psnr"], 2), round(run["ssim"], 3),
+             run["iterations"], round(run["seconds"] / 60, 1), *PAPER[scene][1],
+             *PAPER[scene][0]]
+            for scene in SCENES for name, run in results.get(scene, {}).items()]
+    made = table("Held-out views, a run trained for its minutes on the machine below",
                  ["scene", "size", "ours", "PSNR", "SSIM", "iterations", "minutes",
                   "PaletteNeRF PSNR", "SSIM", "NeRF PSNR", "SSIM"], rows)
     write_result("paper", "The paper's Table 3 on its own scenes", [made], results)
+
+
+def earlier_results() -> dict:
+    """The runs of ``results/paper.json`` (a run scored again replaces its own), so that the
+    table grows one run at a time."""
+    path = RESULTS / "paper.json"
+    return json.loads(path.read_text())["results"] if path.is_file() else {}
 
 
 if __name__ == "__main__":
