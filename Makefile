@@ -9,7 +9,7 @@ DEMO_OUT ?= demo_out
 $(BIN)/.installed: setup.cfg pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev,nerf,poses,collection,studio,spz]'
+	$(BIN)/python -m pip install --quiet -e '.[dev,nerf,poses,collection,studio,splats]'
 	touch $@
 
 NERF := $(DEMO_OUT)/nerf

@@ -53,6 +53,12 @@ def _run(args) -> int:
     if args.stack is None:
         args.stack = str(default_stack())
         print(f"using ./{args.stack}")
+    from splat_files.stack import is_splat_stack
+
+    if is_splat_stack(args.stack):
+        from splat_files.commands import harmonize_command
+
+        return harmonize_command(args)
     result = harmonize_stack(read_stack(args.stack), args.template, args.strength)
     written = result.write(args.stack, args.output, args.render, args.force)
     if args.template in (BEST, ALL):

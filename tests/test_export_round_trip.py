@@ -11,11 +11,8 @@ pytest.importorskip("torch")
 gsply = pytest.importorskip("gsply")
 
 from nerf_stage.splats import Splats, export_splats, splat_fields  # noqa: E402
-from nerf_stage.splats.export import (  # noqa: E402
-    TOLERANCES,
-    read_ply_fields,
-    spz_fractional_bits,
-)
+from splat_files import FORMATS, read_splat_file  # noqa: E402
+from splat_files.spz import fractional_bits  # noqa: E402
 
 
 def scene(rng, reach: float, n: int = 300, opacity=None, scale=None) -> Splats:
@@ -32,14 +29,6 @@ def scene(rng, reach: float, n: int = 300, opacity=None, scale=None) -> Splats:
                   rng.uniform(0, 1, (4, 3)), Basis.ADDITIVE, 1, np.ones(3), {})
 
 
-def read_back(path) -> dict:
-    if path.suffix == ".ply":
-        return read_ply_fields(path)
-    read = gsply.read_spz(path)
-    return {name: np.asarray(getattr(read, name)) for name in ("means", "sh0", "opacities",
-                                                                "scales", "quats")}
-
-
 SCENES = {"unit": dict(reach=1.0), "a city block": dict(reach=1e4),
           "opaque": dict(reach=1.0, opacity=1.0), "faint": dict(reach=1.0, opacity=1e-9),
           "large splats": dict(reach=50.0, scale=30.0)}
@@ -50,13 +39,12 @@ SCENES = {"unit": dict(reach=1.0), "a city block": dict(reach=1e4),
 def test_every_format_holds_extreme_scenes_to_its_quantisation(name, suffix, tmp_path, rng):
     splats = scene(rng, **SCENES[name])
     path = export_splats(splats, tmp_path / f"s{suffix}")
-    meant = {k: np.asarray(v, np.float32) for k, v in splat_fields(splats).items()}
-    read = read_back(path)
-    assert all(np.isfinite(v).all() for v in read.values())
-    step = 0.0 if suffix == ".ply" else 2.0 ** -spz_fractional_bits(meant["means"])
-    error = np.abs(read["means"] - meant["means"]) - 1e-6 * np.abs(meant["means"])
+    meant, read = splat_fields(splats), read_splat_file(path)
+    step = 0.0 if suffix == ".ply" else 2.0 ** -fractional_bits(meant.means)
+    error = np.abs(read.means - meant.means) - 1e-6 * np.abs(meant.means)
     assert error.max() <= step / 2
-    assert np.abs(read["scales"] - meant["scales"]).max() <= TOLERANCES[suffix]["scales"] + 1e-5
+    tolerance = FORMATS[suffix].tolerances(meant)["scales"]
+    assert np.abs(read.scales - meant.scales).max() <= tolerance + 1e-5
 
 
 def test_spz_positions_take_the_fractional_bits_their_extent_needs(tmp_path, rng):
@@ -68,7 +56,7 @@ def test_spz_positions_take_the_fractional_bits_their_extent_needs(tmp_path, rng
 
         header = gzip.decompress(f.read())[:16]
     assert header[13] == 9
-    assert np.abs(read_back(tmp_path / "s.spz")["means"][0] - [1e4, -1e4, 5e3]).max() < 2**-9
+    assert np.abs(read_splat_file(tmp_path / "s.spz").means[0] - [1e4, -1e4, 5e3]).max() < 2**-9
 
 
 @pytest.mark.parametrize("reach, suffix, message", [

@@ -444,7 +444,7 @@ def test_the_ply_of_a_splat_run_carries_its_view_dependence(splat_run, tmp_path)
     draws from that direction (where no weight is clipped at zero or colour at one)."""
     import trimesh
 
-    from nerf_stage.splats import write_ply, write_splats
+    from nerf_stage.splats import export_splats, write_splats
 
     run = load_run(splat_run)
     splats = run.splats({})
@@ -452,7 +452,7 @@ def test_the_ply_of_a_splat_run_carries_its_view_dependence(splat_run, tmp_path)
     write_splats(splats, tmp_path / "s.npz")
     again = read_splats(tmp_path / "s.npz")
     assert np.array_equal(again.residual, splats.residual)
-    write_ply(again, tmp_path / "s.ply")
+    export_splats(again, tmp_path / "s.ply")
     table = trimesh.load(tmp_path / "s.ply").metadata["_ply_raw"]["vertex"]["data"]
     dc = np.stack([table[f"f_dc_{c}"] for c in range(3)], 1)
     rest = np.stack([table[f"f_rest_{i}"] for i in range(45)], 1).reshape(-1, 3, 15)
@@ -473,26 +473,31 @@ def test_the_ply_of_a_splat_run_carries_its_view_dependence(splat_run, tmp_path)
 
 
 def test_the_spz_holds_the_ply_fields_to_its_precision(splat_run, tmp_path, capsys):
-    """SPZ (read back by gsply) keeps what the PLY writes to within its quantisation:
-    positions to 2^-12, colours and opacities to about a 255th, log scales to a 16th,
-    rotations up to sign; the spherical harmonics to a few bits."""
+    """SPZ, read back by gsply (which keeps SPZ's RUB axes) and by our reader, keeps what
+    the PLY writes to within its quantisation: positions to 2^-12, colours and opacities
+    to about a 255th, log scales to a 16th, rotations up to sign; the spherical harmonics
+    to a few bits."""
     gsply = pytest.importorskip("gsply")
     from nerf_stage.splats import splat_fields
+    from splat_files import read_splat_file
+    from splat_files.ply import _from_gsdata
+    from splat_files.spz import flip_axes
 
     run = load_run(splat_run)
     fields = splat_fields(run.splats({}))
     assert main(["export", str(splat_run), "-o", str(tmp_path / "s.spz")]) == 0
-    read = gsply.read_spz(tmp_path / "s.spz")
-    assert len(read) == len(fields["means"]) and read.shN.shape == fields["shN"].shape
-    assert np.abs(read.means - fields["means"]).max() <= 2.0 ** -12
-    assert np.abs((read.sh0 - fields["sh0"]) * SH_C0).max() < 0.01
-    opacity = [1 / (1 + np.exp(-o)) for o in (read.opacities, fields["opacities"])]
-    assert np.abs(opacity[0] - opacity[1]).max() < 0.01
-    assert np.abs(read.scales - fields["scales"]).max() <= 1 / 32 + 1e-6
-    assert np.abs(np.sum(read.quats * fields["quats"], 1)).min() > 0.99
-    assert np.abs(read.shN - fields["shN"]).max() < 0.1
+    for read in (flip_axes(_from_gsdata(gsply.read_spz(tmp_path / "s.spz"))),
+                 read_splat_file(tmp_path / "s.spz")):
+        assert len(read) == len(fields) and read.shN.shape == fields.shN.shape
+        assert np.abs(read.means - fields.means).max() <= 2.0 ** -12
+        assert np.abs((read.sh0 - fields.sh0) * SH_C0).max() < 0.01
+        opacity = [1 / (1 + np.exp(-o)) for o in (read.opacities, fields.opacities)]
+        assert np.abs(opacity[0] - opacity[1]).max() < 0.01
+        assert np.abs(read.scales - fields.scales).max() <= 1 / 32 + 1e-6
+        assert np.abs(np.sum(read.quats * fields.quats, 1)).min() > 0.99
+        assert np.abs(read.shN - fields.shN).max() < 0.1
     expect_error(main, ["export", str(splat_run), "-o", str(tmp_path / "s.obj")],
-                 "as .ply or .spz", capsys)
+                 "splats are written as", capsys)
 
 
 def test_a_splat_file_with_a_residual_of_the_wrong_shape_is_refused(splat_run, tmp_path):

@@ -21,12 +21,12 @@ from nerf_stage.splats import (  # noqa: E402
     cached_bake,
     covariances,
     draw,
+    export_splats,
     matrix_quaternions,
     read_splats,
     refine,
     render_splats,
     splat_tensors,
-    write_ply,
     write_splats,
 )
 from nerf_stage.splats import baking as bake_module  # noqa: E402
@@ -168,9 +168,9 @@ def test_a_region_keeps_the_edit_to_the_splats_inside_it(hand_made, rng):
 def test_the_ply_holds_what_splat_viewers_read(hand_made, tmp_path, rng):
     additive_bake = hand_made
     edit = rng.uniform(0, 1, additive_bake.palette.shape)
-    write_ply(additive_bake, tmp_path / "s.ply", edit)
+    export_splats(additive_bake, tmp_path / "s.ply", edit)
     data = read_ply(tmp_path / "s.ply")
-    assert data.dtype.names == ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+    assert data.dtype.names == ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2",
                                 "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
                                 "rot_2", "rot_3")
     assert np.allclose(np.stack([data["x"], data["y"], data["z"]], 1), additive_bake.centres)
@@ -191,8 +191,8 @@ def test_bake_and_export_from_the_command_line(scene_run, cornell_run, tmp_path,
     capsys.readouterr()
     expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.ply")], "already exists",
                  capsys)
-    expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.obj")], "as .ply or .spz",
-                 capsys)
+    expect_error(main, ["export", str(bake), "-o", str(tmp_path / "cb.obj")],
+                 "splats are written as", capsys)
     expect_error(main, ["bake", str(scene_run), "-o", str(tmp_path / "x.npz"),
                         "--max-splats", "0"], "max splats", capsys)
     run = tmp_path / "run"  # by default the bake goes into the run, where export finds it

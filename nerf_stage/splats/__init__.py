@@ -1,6 +1,6 @@
 """3D Gaussians with palette weights (docs/splats.md): the model and its file (``model``),
-a differentiable rasteriser (``rasterise``), bakes of a weight NeRF (``baking``) and the PLY
-export (``export``)."""
+a differentiable rasteriser (``rasterise``), bakes of a weight NeRF (``baking``) and the
+export to splat files (``export``, through ``splat_files``)."""
 
 from .baking import (
     BAKE_VERSION,
@@ -14,7 +14,7 @@ from .baking import (
     refine,
     splats_of,
 )
-from .export import WRITERS, export_splats, splat_fields, write_ply, write_spz
+from .export import WRITERS, export_splats, splat_fields
 from .model import SPLAT_FORMAT, Splats, covariances, matrix_quaternions, read_splats, write_splats
 from .rasterise import draw, render_splats, splat_tensors
 from .sh import SH_C0
@@ -42,7 +42,5 @@ __all__ = [
     "splat_tensors",
     "splats_of",
     "splat_fields",
-    "write_ply",
     "write_splats",
-    "write_spz",
 ]

@@ -1,5 +1,5 @@
 """``palette-decompose``: images and videos -> shared palette + weight stack (NPZ or Zarr;
-``decompose.decompose_to``)."""
+``decompose.decompose_to``); a splat file -> its splat stack (``splat_files.commands``)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import NoReturn
 
 from ..collection import Collection
 from ..decompose import Decomposition, decompose_to
+from ..errors import InputError
 from ..io import DEFAULT_MAX_PIXELS
 from ..palette_file import palette_to_hex
 from ..palettes import PALETTE_METHODS
@@ -23,7 +24,9 @@ def build_parser() -> ArgumentParser:
         prog=PROG,
         description="Extract one palette shared by all images and per-pixel additive weights.",
     )
-    parser.add_argument("inputs", nargs="+", metavar="INPUT", help="image files and/or folders")
+    parser.add_argument("inputs", nargs="+", metavar="INPUT",
+                        help="image files and/or folders, or one splat file (.ply, "
+                             ".compressed.ply, .spz, .splat, .sog): its splat stack")
     parser.add_argument("-k", type=int, default=None,
                         help="palette size, at least 4 (default 6 without --max-error)")
     parser.add_argument("--max-error", type=float, default=None, metavar="E",
@@ -72,6 +75,15 @@ def run() -> NoReturn:
 
 
 def _run(args) -> int:
+    from splat_files import is_splat_file
+
+    if any(is_splat_file(path) for path in args.inputs):
+        if len(args.inputs) > 1:
+            raise InputError("a splat file is decomposed on its own: give one input")
+        from splat_files.commands import decompose_command
+
+        return decompose_command(args, DEFAULT_STACK, given_options(args, WEIGHT_METHODS),
+                                 given_options(args, PALETTE_METHODS))
     result, written = decompose_to(
         args.inputs, args.output, args.layers, args.force, args.workers, args.scheduler,
         args.resume, k=args.k, max_error=args.max_error, method=args.method, dtype=args.dtype,

@@ -1,5 +1,5 @@
 """``palette-recolor``: a weight stack and an edited palette -> recoloured images, everywhere
-or inside a selection."""
+or inside a selection; a splat stack -> a recoloured splat file (``splat_files.commands``)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ PROG = "palette-recolor"
 def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog=PROG, description="Recolour every image of a weight stack "
                             "with an edited palette.")
-    parser.add_argument("stack", help="weight stack (.npz or .zarr) from palette-decompose")
+    parser.add_argument("stack", help="weight stack (.npz or .zarr) or splat stack from "
+                                      "palette-decompose")
     parser.add_argument("--palette",
                         help='palette JSON: {"palette": ["#rrggbb", ...]}, as many colours as '
                              "the stack's palette: everywhere, or inside the selection given")
@@ -55,6 +56,12 @@ def build_parser() -> ArgumentParser:
     where.add_argument("--save-edits", metavar="FILE",
                        help="save the local edits (and copies of their masks, in "
                             "FILE-stem.masks/) to replay them with --edits")
+    splats = parser.add_argument_group(
+        "splat stacks", "a splat stack from palette-decompose SCENE.ply is recoloured into a "
+        "splat file: -o SCENE.ply, .compressed.ply, .spz or .splat (docs/splat_files.md)")
+    splats.add_argument("--residual", choices=("keep", "scale"), default="keep",
+                        help="the splats' view-dependent colour under an edit: keep it, or "
+                             "scale it with the colour (default keep)")
     return parser
 
 
@@ -68,6 +75,12 @@ def run() -> NoReturn:
 
 
 def _run(args) -> int:
+    from splat_files.stack import is_splat_stack
+
+    if is_splat_stack(args.stack):
+        from splat_files.commands import recolor_command
+
+        return recolor_command(args)
     selected = args.mask or args.select_colour is not None or args.select_near
     if args.palette is None and not (args.edits and not selected):
         raise InputError("give --palette (with a selection: the colours inside it), or "

@@ -1,0 +1,241 @@
+"""Splat files of other tools palette-edited (docs/splat_files.md): the time and peak memory
+to read, decompose and write them, how well the palette explains them and how far a local
+edit leaks, on public splat files and on synthetic scenes of 1 and 3 million splats.
+
+Public files (fetch them with the search tool's ``fetch``; none is committed), in ROOT:
+
+- ``biker.compressed.ply``, ``biker.spz``, ``guitar.compressed.ply``:
+  ``playcanvas/engine`` ``examples/assets/splats/``;
+- ``playbot/``: the SOG of ``playcanvas/engine`` ``examples/assets/splats/playbot/3_0/``
+  (CC-BY-4.0, Stephane Agullo);
+- any other ``.ply``, ``.spz``, ``.splat`` or ``.sog`` put there (a splat run of ours
+  exported with ``nerf-stage export RUN -o ROOT/run.ply``).
+
+Each file goes through the commands in a child process of its own: ``palette-decompose
+FILE -k 6`` (read, palette, weights, the splat stack written), then ``palette-recolor`` of
+an edit (palette colour 0 turned red) into a PLY; the child's peak resident memory is its
+``VmHWM``. Synthetic scenes (random splats of degree 3 in a cube) are written first as
+PLYs of ``--millions`` million splats.
+
+For the public files, ``--views`` views around the scene (an orbit about the splats'
+vertical axis, at 256 x 256, drawn by ``nerf_stage.splats.draw``) score:
+
+- *identity*: the unedited palette's file against the original: the largest difference of
+  any pixel (0: equal);
+- *palette*: the splats with their colours replaced by ``weights @ palette`` (the degree-0
+  colour alone; view dependence kept) against the original: how much of the scene the
+  six colours explain;
+- *leakage*: the edit's mean change (0-255) over the pixels the selection does not reach
+  (where the selected splats' composited coverage is under 1 %), and its mean change where
+  it does.
+
+    python benchmarks/bench_splat_files.py ROOT [--out DIR] [--millions 1 3] [--views 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from results import table, write_result
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from palette_core.palette_file import write_palette_json  # noqa: E402
+from splat_files import SplatFields, is_splat_file, read_splat_file, write_splat_file  # noqa: E402
+from splat_files.fields import SH_C0  # noqa: E402
+from splat_files.stack import read_splat_stack  # noqa: E402
+
+SIZE = 256
+
+
+def child(code: str) -> tuple[float, float, str]:
+    """Seconds, peak resident MB (``VmHWM``) and stdout of ``python -c code``."""
+    with tempfile.NamedTemporaryFile("r") as peak:
+        wrapped = (f"import sys\ntry:\n    {code}\nfinally:\n    open({peak.name!r}, 'w').write("
+                   "[l for l in open('/proc/self/status') if l.startswith('VmHWM')][0])")
+        start = time.perf_counter()
+        done = subprocess.run([sys.executable, "-c", wrapped], capture_output=True, text=True,
+                              cwd=ROOT)
+        seconds = time.perf_counter() - start
+        if done.returncode:
+            sys.exit(f"failed: {code}\n{done.stderr[-2000:]}")
+        return seconds, int(Path(peak.name).read_text().split()[1]) / 1024, done.stdout
+
+
+def command(module: str, argv: list[str]) -> str:
+    return f"from {module} import main; sys.exit(main({[str(a) for a in argv]!r}))"
+
+
+def synthetic(path: Path, millions: float, rng) -> Path:
+    """A PLY of ``millions`` million random splats of degree 3 in a cube."""
+    if path.is_file():
+        return path
+    n = round(millions * 1e6)
+    fields = SplatFields(rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+                         rng.normal(0, 1, (n, 3)).astype(np.float32),
+                         rng.normal(0, 0.1, (n, 15, 3)).astype(np.float32),
+                         rng.normal(0, 2, n).astype(np.float32),
+                         rng.uniform(-6, -3, (n, 3)).astype(np.float32),
+                         rng.normal(size=(n, 4)).astype(np.float32))
+    return write_splat_file(fields, path)
+
+
+def pipeline(path: Path, out: Path) -> dict:
+    """``palette-decompose`` and ``palette-recolor`` of one file, each in a child."""
+    stack = out / f"{path.name.split('.')[0]}.splats.npz"
+    decompose = command("palette_core.cli.decompose",
+                        [path, "-k", 6, "-o", stack, "--force"])
+    seconds, peak, printed = child(decompose)
+    timings = dict(part.split(" ")[:2] for part in
+                   next(line for line in printed.splitlines() if line.startswith("time:"))
+                   [6:].split(", "))
+    edited = read_splat_stack(stack).palette.copy()
+    edited[0] = [1.0, 0.1, 0.1]
+    palette = out / "edit.json"
+    with open(palette, "w") as file:
+        write_palette_json(file, edited)
+    recoloured = out / f"{path.name.split('.')[0]}.edited.ply"
+    recolor = command("palette_core.cli.recolor", [stack, "--palette", palette,
+                                                   "--select-colour", 0, "-o", recoloured,
+                                                   "--force"])
+    recolor_seconds, recolor_peak, _ = child(recolor)
+    return {"stack": stack, "edited": recoloured, "decompose_s": seconds,
+            "decompose_mb": peak, "recolor_s": recolor_seconds, "recolor_mb": recolor_peak,
+            **{f"{k}_s": float(v) for k, v in timings.items()}}
+
+
+def orbit(fields: SplatFields, views: int) -> tuple[np.ndarray, float]:
+    """(V, 4, 4) poses around the splats' middle, about their vertical axis (the PLY's -y),
+    20 degrees above it, far enough to see their central 90 %; the vertical field of view."""
+    from nerf_stage.data.cameras import look_at
+
+    low, high = np.percentile(fields.means, [5, 95], axis=0)
+    centre, reach = (low + high) / 2, float(np.linalg.norm(high - low)) / 2
+    fov = math.radians(50)
+    distance = 1.2 * reach / math.sin(fov / 2)
+    poses = []
+    for angle in np.linspace(0, 2 * math.pi, views, endpoint=False):
+        offset = np.array([math.sin(angle), -math.tan(math.radians(20)), math.cos(angle)])
+        poses.append(look_at(centre + distance * offset / np.linalg.norm(offset), centre,
+                             up=(0.0, -1.0, 0.0)))
+    return np.stack(poses), fov
+
+
+def rendered(fields: SplatFields, poses: np.ndarray, fov: float,
+             values: np.ndarray | None = None) -> np.ndarray:
+    """(V, H, W, C) the splats drawn from ``poses``: their view-dependent colours (3D
+    Gaussian splatting's, clipped to [0, 1]) on black, or other (S, C) ``values``."""
+    import torch
+
+    from nerf_stage.data.cameras import Intrinsics
+    from nerf_stage.splats import draw
+    from nerf_stage.splats.model import covariances
+    from nerf_stage.splats.sh import sh_basis
+
+    focal = 0.5 * SIZE / math.tan(fov / 2)
+    camera = Intrinsics(SIZE, SIZE, focal, focal, SIZE / 2, SIZE / 2)
+    centres = torch.as_tensor(fields.means)
+    cov = covariances(torch.as_tensor(fields.quats, dtype=torch.float64),
+                      torch.as_tensor(np.exp(fields.scales.astype(np.float64)))).float()
+    opacity = torch.sigmoid(torch.as_tensor(fields.opacities))
+    images = []
+    for pose in poses:
+        if values is None:
+            direction = torch.nn.functional.normalize(centres - torch.as_tensor(
+                pose[:3, 3], dtype=torch.float32), dim=1)
+            colour = SH_C0 * torch.as_tensor(fields.sh0) + 0.5 + torch.einsum(
+                "sb,sbc->sc", sh_basis(direction, fields.degree)[:, 1:],
+                torch.as_tensor(fields.shN))
+            shown = colour.clamp(0, 1)
+        else:
+            shown = torch.as_tensor(values, dtype=torch.float32)
+        with torch.no_grad():
+            drawn, _ = draw(centres, cov, shown, opacity, torch.as_tensor(pose), camera, None)
+        images.append(drawn.view(SIZE, SIZE, -1).numpy())
+    return np.stack(images)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
+    return math.inf if mse == 0 else 10 * math.log10(1 / mse)
+
+
+def fidelity(path: Path, done: dict, views: int, out: Path) -> dict:
+    """The identity's and the palette's PSNR and the edit's leakage over ``views`` views,
+    and a picture: original | edited | change, for two views."""
+    original = read_splat_file(path)
+    stack = read_splat_stack(done["stack"])
+    poses, fov = orbit(original, views)
+    truth = rendered(original, poses, fov)
+    same = rendered(stack.recoloured(stack.palette), poses, fov)
+    base = np.clip(stack.weights.astype(np.float64) @ stack.palette, 0, 1)
+    palette_only = original.with_colour((base - 0.5) / SH_C0, original.shN)
+    explained = rendered(palette_only, poses, fov)
+    edited = rendered(read_splat_file(done["edited"]), poses, fov)
+    selected = (stack.weights[:, 0] >= 0.5).astype(np.float32)[:, None]
+    reach = rendered(original, poses, fov, selected)[..., 0]
+    change = 255 * np.abs(edited - truth).mean(-1)
+    outside = reach < 0.01
+    picture = np.concatenate([np.concatenate([truth[i], edited[i], np.repeat(
+        np.clip(change[i] / 64, 0, 1)[..., None], 3, -1)], 1) for i in range(2)], 0)
+    from PIL import Image
+
+    Image.fromarray((picture * 255).round().astype(np.uint8)).save(
+        out / f"{path.name.split('.')[0]}-edit.png")
+    return {"identity_difference": float(np.abs(same - truth).max()),
+            "palette_psnr": psnr(explained, truth),
+            "leak_outside": float(change[outside].mean()) if outside.any() else 0.0,
+            "change_inside": float(change[~outside].mean()) if (~outside).any() else 0.0,
+            "outside_share": float(outside.mean())}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("root", type=Path, help="folder of public splat files")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/out/splat_files"))
+    parser.add_argument("--millions", type=float, nargs="*", default=[1.0, 3.0])
+    parser.add_argument("--views", type=int, default=8)
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    files = sorted(p for p in args.root.iterdir() if is_splat_file(p) or (
+        p.is_dir() and (p / "meta.json").is_file()))
+    files += [synthetic(args.out / f"random-{m:g}M.ply", m, rng) for m in args.millions]
+    results, rows, scores = {}, [], []
+    for path in files:
+        fields = read_splat_file(path)
+        done = pipeline(path, args.out)
+        result = {"splats": len(fields), "degree": fields.degree, **{
+            k: v for k, v in done.items() if k not in ("stack", "edited")}}
+        print(f"{path.name}: {len(fields)} splats, decompose {done['decompose_s']:.1f} s "
+              f"({done['decompose_mb']:.0f} MB), recolour {done['recolor_s']:.1f} s", flush=True)
+        rows.append([path.name, len(fields), fields.degree, round(done["read_s"], 2),
+                     round(done["palette_s"], 2), round(done["weights_s"], 2),
+                     round(done["decompose_s"], 1), round(done["decompose_mb"]),
+                     round(done["recolor_s"], 1), round(done["recolor_mb"])])
+        if not path.name.startswith("random-"):
+            result.update(fidelity(path, done, args.views, args.out))
+            scores.append([path.name, result["identity_difference"],
+                           round(result["palette_psnr"], 2),
+                           round(result["leak_outside"], 3), round(result["change_inside"], 2),
+                           round(result["outside_share"], 3)])
+        results[path.name] = result
+    made = [table("Read, decompose and write, each command in a process of its own",
+                  ["file", "splats", "degree", "read s", "palette s", "weights s",
+                   "decompose s (whole command)", "peak MB", "recolour s (whole command)",
+                   "peak MB"], rows),
+            table(f"Rendered, {args.views} views at {SIZE} x {SIZE} around the scene",
+                  ["file", "identity: largest difference", "palette PSNR", "leak outside (0-255)",
+                   "change inside (0-255)", "share outside"], scores)]
+    write_result("splat_files", "Splat files of other tools, palette-edited", made, results)
+
+
+if __name__ == "__main__":
+    main()
