@@ -27,7 +27,9 @@ vertical axis, at 256 x 256, drawn by ``nerf_stage.splats.draw``) score:
   six colours explain;
 - *leakage*: the edit's mean change (0-255) over the pixels the selection does not reach
   (where the selected splats' composited coverage is under 1 %), and its mean change where
-  it does.
+  it does;
+- *studio*: the splat stack opened in the studio, and a palette edit's new colours for the
+  page, the server's part (``studio_edit``).
 
     python benchmarks/bench_splat_files.py ROOT [--out DIR] [--millions 1 3] [--views 8]
 """
@@ -196,6 +198,30 @@ def fidelity(path: Path, done: dict, views: int, out: Path) -> dict:
             "outside_share": float(outside.mean())}
 
 
+def studio_edit(path: Path, repeats: int = 5) -> dict:
+    """Seconds to open ``path``'s splat stack in the studio (``SplatFileTarget``: the splats
+    the browser draws) and the server's part of a palette edit, median of ``repeats``: the
+    splats' new colours (``SceneView.splat_colours``) as the bytes the page gets."""
+    from studio.app import Studio
+    from studio.splat_file import SplatFileTarget
+
+    start = time.perf_counter()
+    target = SplatFileTarget.open(path)
+    opened = time.perf_counter() - start
+    studio = Studio(target, port=0)
+    try:
+        times = []
+        for i in range(repeats):
+            colour = np.array([i / repeats, 0.2, 0.3])
+            start = time.perf_counter()
+            studio._apply(lambda colour=colour: studio.editor.set_colour(0, colour))
+            np.ascontiguousarray(np.round(studio.view.splat_colours() * 255), np.uint8)
+            times.append(time.perf_counter() - start)
+    finally:
+        studio.stop()
+    return {"studio_open_s": opened, "studio_edit_ms": 1000 * float(np.median(times))}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("root", type=Path, help="folder of public splat files")
@@ -208,7 +234,7 @@ def main() -> None:
     files = sorted(p for p in args.root.iterdir() if is_splat_file(p) or (
         p.is_dir() and (p / "meta.json").is_file()))
     files += [synthetic(args.out / f"random-{m:g}M.ply", m, rng) for m in args.millions]
-    results, rows, scores = {}, [], []
+    results, rows, scores, studio_rows = {}, [], [], []
     for path in files:
         fields = read_splat_file(path)
         done = pipeline(path, args.out)
@@ -226,6 +252,9 @@ def main() -> None:
                            round(result["palette_psnr"], 2),
                            round(result["leak_outside"], 3), round(result["change_inside"], 2),
                            round(result["outside_share"], 3)])
+        result.update(studio_edit(done["stack"]))
+        studio_rows.append([path.name, len(fields), round(result["studio_open_s"], 1),
+                            round(result["studio_edit_ms"], 1)])
         results[path.name] = result
     made = [table("Read, decompose and write, each command in a process of its own",
                   ["file", "splats", "degree", "read s", "palette s", "weights s",
@@ -233,7 +262,9 @@ def main() -> None:
                    "peak MB"], rows),
             table(f"Rendered, {args.views} views at {SIZE} x {SIZE} around the scene",
                   ["file", "identity: largest difference", "palette PSNR", "leak outside (0-255)",
-                   "change inside (0-255)", "share outside"], scores)]
+                   "change inside (0-255)", "share outside"], scores),
+            table("The studio, its splat stack opened and a palette edit (the server's part, "
+                  "median of 5)", ["file", "splats", "open s", "edit ms"], studio_rows)]
     write_result("splat_files", "Splat files of other tools, palette-edited", made, results)
 
 

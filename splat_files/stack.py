@@ -95,14 +95,15 @@ class SplatStack:
         return change
 
     def recoloured(self, palette: np.ndarray, edits: list[LocalEdit] = (),
-                   residual: str = "keep") -> SplatFields:
-        """The splats recoloured (``change``): every splat whose colour does not change keeps
-        its coefficients bit for bit, the others get ``sh0 + change / SH_C0`` and their
-        view-dependent terms by ``residual`` (``RESIDUALS``)."""
+                   residual: str = "keep", inside: np.ndarray | None = None) -> SplatFields:
+        """The splats recoloured (``change``; only those of the (S,) bool mask ``inside``,
+        when given): every splat whose colour does not change keeps its coefficients bit
+        for bit, the others get ``sh0 + change / SH_C0`` and their view-dependent terms by
+        ``residual`` (``RESIDUALS``)."""
         if residual not in RESIDUALS:
             raise InputError(f"the residual is one of {', '.join(RESIDUALS)}, not {residual}")
         change = self.change(palette, edits)
-        moved = (change != 0).any(1)
+        moved = (change != 0).any(1) & (True if inside is None else inside)
         sh0, shN = self.fields.sh0.copy(), self.fields.shN.copy()  # noqa: N806
         sh0[moved] = self.fields.sh0[moved] + change[moved] / SH_C0
         if residual == "scale" and shN.shape[1]:

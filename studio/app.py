@@ -35,6 +35,7 @@ from .photos import PhotoTarget
 from .pictures import to_bytes
 from .scene import SceneTarget
 from .scene_view import SceneView
+from .splat_file import SplatFileTarget
 
 NOTICE_S = 5.0  # how long a notification stays
 
@@ -85,7 +86,7 @@ def check_port(host: str, port: int) -> None:
 
 def open_target(path: str, splats: bool = True):
     """A ``PhotoTarget`` for a weight stack, a ``SceneTarget`` for a run folder (baked into
-    splats unless not ``splats``).
+    splats unless not ``splats``), a ``SplatFileTarget`` for a splat file or splat stack.
 
     Raises
     ------
@@ -93,16 +94,20 @@ def open_target(path: str, splats: bool = True):
         If ``path`` is neither.
     """
     from nerf_stage.train.checkpoint import CHECKPOINT
+    from splat_files import is_splat_file
+    from splat_files.stack import is_splat_stack
 
     target = Path(path)
     if target.is_dir() and (target / CHECKPOINT).is_file():
         return SceneTarget.open(target, bake=splats)
+    if is_splat_file(target) or is_splat_stack(target):
+        return SplatFileTarget.open(target)
     if target.suffix in (".npz", ".zarr"):
         return PhotoTarget.open(target)
     if not target.exists():
         raise InputError(f"{path} does not exist")
-    raise InputError(f"{path} is neither a weight stack (.npz, .zarr) nor a run folder "
-                     f"(a folder with {CHECKPOINT})")
+    raise InputError(f"{path} is neither a weight stack (.npz, .zarr), a splat file (.ply, "
+                     f".spz, .splat, .sog) nor a run folder (a folder with {CHECKPOINT})")
 
 
 def _no_share_url(*args, **kwargs) -> None:
@@ -126,7 +131,7 @@ class Studio:
         The page's address with the launch's token: the only way in.
     """
 
-    def __init__(self, target: PhotoTarget | SceneTarget, host: str = "127.0.0.1",
+    def __init__(self, target: PhotoTarget | SceneTarget | SplatFileTarget, host: str = "127.0.0.1",
                  port: int = 8080):
         check_port(host, port)
         self.target = target

@@ -16,7 +16,8 @@ def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog=PROG, description="Edit a palette live in the browser: "
                             "the images of a weight stack, or a trained weight NeRF.")
     parser.add_argument("target", help="a weight stack (.npz or .zarr) from palette-decompose, "
-                        "or a run folder from nerf-stage train")
+                        "a run folder from nerf-stage train, or a splat file (.ply, .spz, "
+                        ".splat, .sog) or its splat stack")
     parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to listen on (default 127.0.0.1: this machine only)")

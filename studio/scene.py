@@ -109,6 +109,14 @@ class SceneTarget:
         return self.run.palette
 
     @property
+    def rows(self) -> int:
+        """Rows of a full-quality view: the training camera's."""
+        return self.run.intrinsics.height
+
+    def default_palette(self) -> Path:
+        return self.path / "edited_palette.json"
+
+    @property
     def fov_y(self) -> float:
         """Vertical field of view of the training camera, radians."""
         return 2 * math.atan(0.5 * self.run.intrinsics.height / self.run.intrinsics.fy)

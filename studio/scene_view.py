@@ -38,18 +38,20 @@ class SceneView:
         self.viewports: dict[int, Viewport] = {}
 
     def default_palette_path(self) -> Path:
-        return self.target.path / "edited_palette.json"
+        return self.target.default_palette()
 
     def build_panel(self, gui) -> None:
         """What draws the view (splats or the network) and the full-quality still; the
         region: on or off, and its size; its gizmo moves it in the scene."""
         splats = self.target.splats
         with gui.add_folder("View"):
+            network = self.target.run is not None
             self.drawer = gui.add_dropdown(
-                "drawn by", (SPLATS, NETWORK) if splats is not None else (NETWORK,),
+                "drawn by", ((SPLATS,) if splats is not None else ()) + (
+                    (NETWORK,) if network else ()),
                 hint="splats: camera moves need no server; the network: full quality")
             self.drawer.on_update(lambda event: self._drawer_changed())
-            still = gui.add_button("full-quality still", disabled=splats is None,
+            still = gui.add_button("full-quality still", disabled=splats is None or not network,
                                    hint="the network's render of this view, until it moves")
             still.on_click(lambda event: self.viewports[event.client.client_id].still())
         self.covariances = None if splats is None else splats.covariances()
@@ -187,7 +189,7 @@ class Viewport:
 
     def intrinsics(self, rows: int | None = None):
         return self.target.intrinsics(bounded_aspect(self.client.camera),
-                                      rows or self.target.run.intrinsics.height)
+                                      rows or self.target.rows)
 
     def _loop(self) -> None:
         while self.running:

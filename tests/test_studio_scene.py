@@ -86,3 +86,40 @@ def test_scene_mode_draws_splats_and_recolours_them(scene_run, monkeypatch):
         assert not view.splats_drawn
     finally:
         studio.stop()
+
+
+def test_a_splat_file_opens_in_the_studio_and_exports_its_edit(tmp_path, rng):
+    """A splat file is decomposed as it opens; the browser's colours follow the palette's
+    change; the unedited export is the file again and a box keeps an edit inside it."""
+    from splat_files import read_splat_file, write_splat_file
+    from studio.app import open_target
+
+    from .test_splat_files import ATTRIBUTES, scene
+
+    path = write_splat_file(scene(rng, 200), tmp_path / "scene.ply")
+    target = open_target(str(path))
+    assert target.mode == "splat file" and target.splats.weights.shape == (200, 6)
+    assert np.allclose(target.splats.colours(), target.stack.colours(), atol=1e-5)
+    studio = Studio(target, port=0)
+    try:
+        view = studio.view
+        assert view.splats_drawn and view.drawer.options == ("splats (in the browser)",)
+        edited = target.palette.copy()
+        edited[0] = [1.0, 0.0, 0.0]
+        studio._apply(lambda: studio.editor.set_colour(0, edited[0]))
+        change = target.stack.change(edited)
+        assert np.allclose(view.splat_colours(), np.clip(target.stack.colours() + change, 0, 1),
+                           atol=1e-5)
+    finally:
+        studio.stop()
+    same = target.export(tmp_path / "same.ply", target.palette)[0]
+    assert all(np.array_equal(getattr(read_splat_file(same), k), getattr(target.stack.fields, k))
+               for k in ATTRIBUTES)
+    from nerf_stage.edit.regions import Region
+
+    box = Region("box", tuple(map(float, target.stack.fields.means[0])), (1e-3, 1e-3, 1e-3))
+    one = read_splat_file(target.export(tmp_path / "one.ply", edited, regions=[box])[0])
+    moved = (one.sh0 != target.stack.fields.sh0).any(1)
+    assert moved.sum() <= 1 and not moved[1:].any()
+    with pytest.raises(InputError, match="turntable"):
+        target.export(tmp_path / "turn.gif", edited)

@@ -51,6 +51,11 @@ class Splats:
         The weights' view-dependent residual in spherical harmonics of degrees 1 and up
         (``sh.sh_basis``; a splat run's; summing to zero over the channels for the additive
         basis); None for a bake, which is diffuse.
+    offset : (S, 3) float32 or None
+        What the palette does not explain of each splat's colour, added to it whatever the
+        palette: a splat file's own colour less ``weights @ palette``, so that an edit
+        changes each colour by ``weights @ (P' - P)`` (docs/splat_files.md); None for a
+        bake or a run.
     """
 
     centres: np.ndarray
@@ -64,6 +69,7 @@ class Splats:
     background: np.ndarray
     source: dict
     residual: np.ndarray | None = None
+    offset: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.centres)
@@ -82,7 +88,10 @@ class Splats:
         palette = self.palette if palette is None else np.asarray(palette, np.float64)
         weights = self.weights if weights is None else weights
         terms = basis_terms(palette, self.basis, self.order).astype(np.float32)
-        colours = np.clip(weights @ terms, 0, 1)
+        colours = weights @ terms
+        if self.offset is not None:
+            colours += self.offset
+        colours = np.clip(colours, 0, 1)
         if regions:
             outside = self._outside(regions)
             colours[outside] = self.colours(weights=weights)[outside]
