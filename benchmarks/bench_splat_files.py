@@ -31,7 +31,13 @@ vertical axis, at 256 x 256, drawn by ``nerf_stage.splats.draw``) score:
 - *studio*: the splat stack opened in the studio, and a palette edit's new colours for the
   page, the server's part (``studio_edit``).
 
+With ``--run RUN`` (a splat run of ours, additive basis), the ``--residual`` modes: its
+splats' residual lives in weight space, so its own export with an edited palette is how
+its view-dependent colour should follow the edit; its export with its own palette, given
+its weights as a splat stack, is recoloured by each mode and scored against that.
+
     python benchmarks/bench_splat_files.py ROOT [--out DIR] [--millions 1 3] [--views 8]
+        [--run RUN]
 """
 
 from __future__ import annotations
@@ -222,12 +228,46 @@ def studio_edit(path: Path, repeats: int = 5) -> dict:
     return {"studio_open_s": opened, "studio_edit_ms": 1000 * float(np.median(times))}
 
 
+def residual_modes(run_dir: Path, views: int) -> dict:
+    """The view-dependent colour under an edit, each of ``RESIDUALS`` (and ``none``: dropped)
+    against the truth of a splat run of ours: its splats' residual lives in weight space, so
+    its own export with the edited palette is how the view dependence follows the edit.
+    The run's export with its own palette, given the run's weights as a splat stack, is
+    recoloured with two edits; PSNR over ``views`` views of an orbit."""
+    from nerf_stage.splats import splat_fields
+    from nerf_stage.train.loading import load_run
+    from palette_core.basis import Basis
+    from splat_files.stack import RESIDUALS, SplatStack
+
+    splats = load_run(run_dir).splats({})
+    if splats.basis != Basis.ADDITIVE:
+        sys.exit(f"{run_dir}: residual modes need a run of the additive basis")
+    fields = splat_fields(splats)
+    stack = SplatStack(fields, splats.palette, splats.weights, np.zeros((0, 3), np.int32))
+    poses, fov = orbit(fields, views)
+    one = splats.palette.copy()
+    one[0] = 1 - one[0]
+    scores = {}
+    for name, edited in {"one colour inverted": one, "palette reversed":
+                         splats.palette[::-1].copy()}.items():
+        truth = rendered(splat_fields(splats, edited), poses, fov)
+        recoloured = {mode: stack.recoloured(edited, residual=mode) for mode in RESIDUALS}
+        recoloured["none"] = recoloured["keep"].with_colour(recoloured["keep"].sh0,
+                                                            fields.shN[:, :0])
+        scores[name] = {mode: psnr(rendered(f, poses, fov), truth)
+                        for mode, f in recoloured.items()}
+    return scores
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("root", type=Path, help="folder of public splat files")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/splat_files"))
     parser.add_argument("--millions", type=float, nargs="*", default=[1.0, 3.0])
     parser.add_argument("--views", type=int, default=8)
+    parser.add_argument("--run", type=Path, default=None,
+                        help="a splat run of ours (additive basis): its view-dependent colour "
+                             "under edits, each residual mode against the run's own export")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(0)
@@ -265,6 +305,13 @@ def main() -> None:
                    "change inside (0-255)", "share outside"], scores),
             table("The studio, its splat stack opened and a palette edit (the server's part, "
                   "median of 5)", ["file", "splats", "open s", "edit ms"], studio_rows)]
+    if args.run is not None:
+        results["residual modes"] = modes = residual_modes(args.run, args.views)
+        made.append(table(f"View-dependent colour under an edit: {args.run.name} recoloured "
+                          "through its splat file, against its own export (PSNR)",
+                          ["edit", *next(iter(modes.values()))],
+                          [[edit, *(round(v, 2) for v in row.values())]
+                           for edit, row in modes.items()]))
     write_result("splat_files", "Splat files of other tools, palette-edited", made, results)
 
 

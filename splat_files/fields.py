@@ -20,6 +20,9 @@ DEGREES = {rest: degree for degree, rest in REST_COEFFICIENTS.items()}
 MAX_LOGIT, MAX_LOG_SCALE = 100.0, 80.0
 #: Largest |coefficient| of a colour's spherical harmonics (a colour of +-1000 in [0, 1]).
 MAX_COEFFICIENT = 1e4
+#: The most a deflate stream expands (RFC 1951's longest match, 258 bytes from 2 bits): the
+#: bound on what a compressed container may declare.
+MAX_RATIO = 1032
 
 
 @dataclass
@@ -96,8 +99,9 @@ class SplatFields:
                              f"{self.shN.shape}, not (S, 0, 3 or 8 or 15, 3)")
         if s == 0:
             raise InputError(f"{name} holds no splats")
-        limits = {"means": np.inf, "sh0": MAX_COEFFICIENT, "shN": MAX_COEFFICIENT,
-                  "opacities": MAX_LOGIT, "scales": MAX_LOG_SCALE, "quats": np.inf}
+        finite = float(np.finfo(np.float32).max)
+        limits = {"means": finite, "sh0": MAX_COEFFICIENT, "shN": MAX_COEFFICIENT,
+                  "opacities": MAX_LOGIT, "scales": MAX_LOG_SCALE, "quats": finite}
         for key, limit in limits.items():
             value = getattr(self, key).reshape(s, -1)
             bad = ~(np.abs(value) <= limit).all(1) if value.size else np.zeros(s, bool)
@@ -119,3 +123,26 @@ def as_fields(means, sh0, shN, opacities, scales, quats, **kept) -> SplatFields:
     arrays = [np.ascontiguousarray(a, np.float32)
               for a in (means, sh0, shN, opacities, scales, quats)]
     return SplatFields(*arrays, **kept)
+
+
+def unit_quaternions(quats: np.ndarray) -> np.ndarray:
+    """(S, 4) float32 ``quats`` of unit length."""
+    return (quats / np.linalg.norm(quats, axis=1, keepdims=True)).astype(np.float32)
+
+
+def gsply_module(what: str):
+    """PyPI's ``gsply``, or InputError saying that ``what`` needs it."""
+    try:
+        import gsply
+    except ImportError:
+        raise InputError(f"{what} needs gsply: pip install 'palette-nerf-toolkit[splats]'") \
+            from None
+    return gsply
+
+
+def from_gsdata(data, **kept) -> SplatFields:
+    """``SplatFields`` of a ``gsply.GSData`` in the PLY's conventions (``kept``: comments)."""
+    s = len(data.means)
+    shN = np.zeros((s, 0, 3)) if data.shN is None else np.asarray(data.shN)  # noqa: N806
+    return as_fields(data.means, data.sh0, shN.reshape(s, -1, 3), data.opacities, data.scales,
+                     data.quats, **kept)

@@ -17,7 +17,14 @@ import numpy as np
 
 from palette_core.errors import InputError
 
-from .fields import REST_COEFFICIENTS, SplatFields, as_fields
+from .fields import (
+    REST_COEFFICIENTS,
+    SplatFields,
+    as_fields,
+    from_gsdata,
+    gsply_module,
+    unit_quaternions,
+)
 
 #: numpy's scalar types by the names of PLY 1.0, and those names by type and by alias.
 NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
@@ -174,11 +181,11 @@ def _read_compressed(path: Path, header: Header) -> SplatFields:
     if chunk.count != -(-vertex.count // 256):
         raise InputError(f"{path}: a compressed PLY of {vertex.count} splats has "
                          f"{chunk.count} chunks, not one per 256")
-    gsply = _gsply("compressed PLY")
+    gsply = gsply_module("compressed PLY")
     data = gsply.reader.read_compressed(path)
     if data is None:
         raise InputError(f"{path} is a compressed PLY of a variant gsply does not read")
-    return _from_gsdata(data, comments=header.comments)
+    return from_gsdata(data, comments=header.comments)
 
 
 def write_ply(fields: SplatFields, path: str | os.PathLike) -> None:
@@ -220,28 +227,7 @@ def write_ply(fields: SplatFields, path: str | os.PathLike) -> None:
 def write_compressed_ply(fields: SplatFields, path: str | os.PathLike) -> None:
     """``fields`` as SuperSplat's compressed PLY, through ``gsply`` (positions, scales and
     colours quantised per chunk of 256 splats, rotations as smallest three)."""
-    gsply = _gsply("compressed PLY")
-    gsply.writer.write_compressed(Path(path), fields.means, fields.scales, _unit(fields.quats),
-                                  fields.opacities, fields.sh0,
+    gsply = gsply_module("compressed PLY")
+    gsply.writer.write_compressed(Path(path), fields.means, fields.scales,
+                                  unit_quaternions(fields.quats), fields.opacities, fields.sh0,
                                   fields.shN if fields.shN.shape[1] else None)
-
-
-def _unit(quats: np.ndarray) -> np.ndarray:
-    return (quats / np.linalg.norm(quats, axis=1, keepdims=True)).astype(np.float32)
-
-
-def _gsply(what: str):
-    try:
-        import gsply
-    except ImportError:
-        raise InputError(f"{what} needs gsply: pip install 'palette-nerf-toolkit[splats]'") \
-            from None
-    return gsply
-
-
-def _from_gsdata(data, **kept) -> SplatFields:
-    """``SplatFields`` of a ``gsply.GSData`` in the PLY's conventions."""
-    s = len(data.means)
-    shN = np.zeros((s, 0, 3)) if data.shN is None else np.asarray(data.shN)  # noqa: N806
-    return as_fields(data.means, data.sh0, shN.reshape(s, -1, 3), data.opacities, data.scales,
-                     data.quats, **kept)

@@ -16,9 +16,7 @@ from PIL import Image
 
 from palette_core.errors import InputError
 
-from .fields import SplatFields
-from .ply import _from_gsdata, _gsply
-from .spz import MAX_RATIO
+from .fields import MAX_RATIO, SplatFields, from_gsdata, gsply_module
 
 #: The images of a SOG and how many pixels each holds a splat (the rest: codebooks).
 SPLAT_IMAGES = ("means", "quats", "scales", "sh0")
@@ -46,10 +44,10 @@ def read_sog(path: str | os.PathLike) -> SplatFields:
             raise InputError(f"{path}: its {key} image {name} is {width} x {height}, not of "
                              f"{count} splats")
     try:
-        data = _gsply("SOG").sogread(path)
+        data = gsply_module("SOG").sogread(path)
     except (ValueError, KeyError, ImportError) as exc:
         raise InputError(f"{path}: {exc}") from None
-    return _from_gsdata(data)
+    return from_gsdata(data)
 
 
 def _entries(path: Path):

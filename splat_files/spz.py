@@ -20,12 +20,16 @@ import numpy as np
 
 from palette_core.errors import InputError
 
-from .fields import REST_COEFFICIENTS, SplatFields
-from .ply import _from_gsdata, _gsply, _unit
+from .fields import (
+    MAX_RATIO,
+    REST_COEFFICIENTS,
+    SplatFields,
+    from_gsdata,
+    gsply_module,
+    unit_quaternions,
+)
 
 MAGIC = 0x5053474E  # "NGSP"
-#: The most a deflate stream expands (RFC 1951's longest match: 258 bytes from 2 bits).
-MAX_RATIO = 1032
 #: Sign of each coefficient of degrees 1 to 3 (3D Gaussian splatting's order) under
 #: (x, y, z) -> (x, -y, -z): -1 where the basis function is odd in y + z.
 SH_FLIPS = np.array([-1, -1, 1,  -1, 1, 1, -1, 1,  -1, 1, -1, -1, 1, -1, 1], np.float32)
@@ -56,10 +60,10 @@ def read_spz(path: str | os.PathLike) -> SplatFields:
     else:
         raise InputError(f"{path} is not an SPZ file (neither gzip nor NGSP)")
     try:
-        data = _gsply("SPZ").read_spz(path)
+        data = gsply_module("SPZ").read_spz(path)
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
-    return flip_axes(_from_gsdata(data))
+    return flip_axes(from_gsdata(data))
 
 
 def _declared(path: Path, version: int, count: int, degree: int, bits: int) -> int:
@@ -110,7 +114,8 @@ def _check_ngsp(path: Path, start: bytes) -> None:
         raise InputError(f"{path}: the SPZ header is cut short")
     _, version, count, degree, bits = struct.unpack_from("<IIIBB", start)
     if version != 4:
-        raise InputError(f"{path}: SPZ version {version} is not read (2, 3 and 4 are)")
+        raise InputError(f"{path}: an SPZ of version {version} not in a gzip stream is not read "
+                         "(versions 2 and 3 are gzip streams, 4 is NGSP)")
     size = path.stat().st_size
     if _declared(path, version, count, degree, bits) > MAX_RATIO * size:
         raise InputError(f"{path}: its header declares {count} splats, more than {size} "
@@ -148,10 +153,10 @@ def write_spz(fields: SplatFields, path: str | os.PathLike, version: int = 3) ->
     """``fields`` as SPZ (gzip version 3, or NGSP version 4), in SPZ's RUB frame, through
     ``gsply``: 24-bit fixed-point positions of ``fractional_bits``, 8-bit colours, scales
     and opacities, spherical harmonics in 8 bits, rotations as smallest three."""
-    gsply = _gsply("SPZ")
+    gsply = gsply_module("SPZ")
     rub = flip_axes(fields)
     data = gsply.GSData(means=rub.means, sh0=rub.sh0, shN=rub.shN, opacities=rub.opacities,
-                        scales=rub.scales, quats=_unit(rub.quats),
+                        scales=rub.scales, quats=unit_quaternions(rub.quats),
                         _format=gsply.create_ply_format(fields.degree))
     gsply.write_spz(path, data, fractional_bits=fractional_bits(fields.means),
                     version=version)

@@ -480,13 +480,13 @@ def test_the_spz_holds_the_ply_fields_to_its_precision(splat_run, tmp_path, caps
     gsply = pytest.importorskip("gsply")
     from nerf_stage.splats import splat_fields
     from splat_files import read_splat_file
-    from splat_files.ply import _from_gsdata
+    from splat_files.fields import from_gsdata
     from splat_files.spz import flip_axes
 
     run = load_run(splat_run)
     fields = splat_fields(run.splats({}))
     assert main(["export", str(splat_run), "-o", str(tmp_path / "s.spz")]) == 0
-    for read in (flip_axes(_from_gsdata(gsply.read_spz(tmp_path / "s.spz"))),
+    for read in (flip_axes(from_gsdata(gsply.read_spz(tmp_path / "s.spz"))),
                  read_splat_file(tmp_path / "s.spz")):
         assert len(read) == len(fields) and read.shN.shape == fields.shN.shape
         assert np.abs(read.means - fields.means).max() <= 2.0 ** -12

@@ -88,13 +88,13 @@ def test_every_written_format_round_trips_within_its_quantisation(suffix, degree
 def test_gsply_reads_what_we_write(tmp_path, rng):
     """A second reader: gsply reads our PLY exactly and our SPZ in SPZ's own frame."""
     gsply = pytest.importorskip("gsply")
-    from splat_files.ply import _from_gsdata
+    from splat_files.fields import from_gsdata
 
     fields = scene(rng)
     write_splat_file(fields, tmp_path / "s.ply")
-    assert same(_from_gsdata(gsply.plyread(tmp_path / "s.ply")), fields)
+    assert same(from_gsdata(gsply.plyread(tmp_path / "s.ply")), fields)
     write_splat_file(fields, tmp_path / "s.spz")
-    theirs = flip_axes(_from_gsdata(gsply.read_spz(tmp_path / "s.spz")))
+    theirs = flip_axes(from_gsdata(gsply.read_spz(tmp_path / "s.spz")))
     assert np.abs(theirs.means - fields.means).max() <= 2.0 ** -13
     assert np.abs(theirs.shN - fields.shN).max() <= 1 / 128 + 1e-6
 
@@ -149,6 +149,7 @@ HOSTILE = {
     "a header that never ends": (lambda t: _write(t / "e.ply", b"ply\n" + b"comment x\n" * 20000),
                                  "does not end"),
     "NaN": (lambda t: _ply(t, 4, 4, np.nan), "NaN or infinite"),
+    "infinity": (lambda t: _ply(t, 4, 4, np.inf), "NaN or infinite"),
     "a logit of 1e30": (lambda t: _ply(t, 4, 4, 1e30), "beyond"),
     "zero quaternions": (lambda t: _ply(t, 4, 4, 0.0), "length zero"),
     "a .splat of part records": (lambda t: _write(t / "p.splat", b"\0" * 33), "whole records"),
