@@ -31,13 +31,13 @@ vertical axis, at 256 x 256, drawn by ``nerf_stage.splats.draw``) score:
 - *studio*: the splat stack opened in the studio, and a palette edit's new colours for the
   page, the server's part (``studio_edit``).
 
-With ``--run RUN`` (a splat run of ours, additive basis), the ``--residual`` modes: its
+With ``--runs RUN ...`` (splat runs of ours, additive basis), the ``--residual`` modes: its
 splats' residual lives in weight space, so its own export with an edited palette is how
 its view-dependent colour should follow the edit; its export with its own palette, given
 its weights as a splat stack, is recoloured by each mode and scored against that.
 
     python benchmarks/bench_splat_files.py ROOT [--out DIR] [--millions 1 3] [--views 8]
-        [--run RUN]
+        [--runs RUN ...]
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ sys.path.insert(0, str(ROOT))
 from palette_core.palette_file import write_palette_json  # noqa: E402
 from splat_files import SplatFields, is_splat_file, read_splat_file, write_splat_file  # noqa: E402
 from splat_files.fields import SH_C0  # noqa: E402
-from splat_files.stack import read_splat_stack  # noqa: E402
+from splat_files.stack import RESIDUALS, read_splat_stack  # noqa: E402
 
 SIZE = 256
 
@@ -237,7 +237,7 @@ def residual_modes(run_dir: Path, views: int) -> dict:
     from nerf_stage.splats import splat_fields
     from nerf_stage.train.loading import load_run
     from palette_core.basis import Basis
-    from splat_files.stack import RESIDUALS, SplatStack
+    from splat_files.stack import SplatStack
 
     splats = load_run(run_dir).splats({})
     if splats.basis != Basis.ADDITIVE:
@@ -265,8 +265,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/splat_files"))
     parser.add_argument("--millions", type=float, nargs="*", default=[1.0, 3.0])
     parser.add_argument("--views", type=int, default=8)
-    parser.add_argument("--run", type=Path, default=None,
-                        help="a splat run of ours (additive basis): its view-dependent colour "
+    parser.add_argument("--runs", type=Path, nargs="*", default=[],
+                        help="splat runs of ours (additive basis): their view-dependent colour "
                              "under edits, each residual mode against the run's own export")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -305,13 +305,14 @@ def main() -> None:
                    "change inside (0-255)", "share outside"], scores),
             table("The studio, its splat stack opened and a palette edit (the server's part, "
                   "median of 5)", ["file", "splats", "open s", "edit ms"], studio_rows)]
-    if args.run is not None:
-        results["residual modes"] = modes = residual_modes(args.run, args.views)
-        made.append(table(f"View-dependent colour under an edit: {args.run.name} recoloured "
-                          "through its splat file, against its own export (PSNR)",
-                          ["edit", *next(iter(modes.values()))],
-                          [[edit, *(round(v, 2) for v in row.values())]
-                           for edit, row in modes.items()]))
+    modes = {run.name: residual_modes(run, args.views) for run in args.runs}
+    if modes:
+        results["residual modes"] = modes
+        made.append(table("View-dependent colour under an edit: a splat run recoloured through "
+                          "its splat file, against its own export (PSNR, dB)",
+                          ["run", "edit", *RESIDUALS, "none"],
+                          [[run, edit, *(round(row[m], 2) for m in (*RESIDUALS, "none"))]
+                           for run, edits in modes.items() for edit, row in edits.items()]))
     write_result("splat_files", "Splat files of other tools, palette-edited", made, results)
 
 

@@ -10,7 +10,8 @@ A recolouring adds the change of the palette, ``weights @ (P' - P)``, to each sp
 degree-0 coefficients (docs/splat_files.md): the file's own colours are kept, not the
 palette's reconstruction of them, so the unedited palette gives back every value of the
 file bit for bit, and a splat outside a selection keeps its bytes. The view-dependent
-terms (degrees 1 to 3) are ``RESIDUALS``: kept as they are, or scaled with the colour.
+terms (degrees 1 to 3) are ``RESIDUALS``: kept as they are, scaled with the colour, or
+carried by the edit's local linear map of colours.
 """
 
 from __future__ import annotations
@@ -30,16 +31,18 @@ from palette_core.palettes import palette_polytope
 from palette_core.selection import LocalEdit
 from palette_core.stack import NpzReader
 from palette_core.swatch import palette_swatch
-from palette_core.weights import check_weight_method, colour_weights
+from palette_core.weights import check_weight_method, colour_weights, palette_weights
 
 from .fields import SH_C0, SplatFields, as_fields
 
 SPLAT_STACK = "palette-splat-stack/1"
 #: What happens to a splat's view-dependent colour (degrees 1 to 3) when its colour changes:
 #: ``keep`` it; ``scale`` it channel by channel with the colour (c' / c, for c of at least
-#: ``SCALE_FLOOR``).
-RESIDUALS = ("keep", "scale")
+#: ``SCALE_FLOOR``); ``follow`` the edit's local linear map of colours
+#: (``SplatStack.edit_maps``).
+RESIDUALS = ("keep", "scale", "follow")
 SCALE_FLOOR = 1 / 64
+EDIT_STEP = 1 / 64
 #: Knud Thomsen's exponent: an ellipsoid's surface ~ 4 pi ((ab^p + ac^p + bc^p) / 3)^(1/p).
 _THOMSEN = 1.6075
 _ARRAYS = ("means", "sh0", "shN", "opacities", "scales", "quats")
@@ -83,19 +86,11 @@ class SplatStack:
 
     def change(self, palette: np.ndarray, edits: list[LocalEdit] = ()) -> np.ndarray:
         """(S, 3) float64 each splat's change of colour for ``palette`` outside every edit
-        and each edit's palette inside its selection, stacked as ``palette_core.selection``
-        stacks them: ``w @ (P - P0) + sum_i s_i w @ (P_i - P)``."""
-        weights = self.weights.astype(np.float64)
-        change = weights @ (np.asarray(palette, np.float64) - self.palette)
-        shares = [edit.selection.values("splats", self.weights, self.colours())
-                  for edit in edits]
-        for i, edit in enumerate(edits):
-            share = shares[i] * np.prod([1 - m for m in shares[i + 1:]], axis=0)
-            change += share[:, None] * (weights @ (np.asarray(edit.palette) - palette))
-        return change
+        and each edit's palette inside its selection (``change_of``)."""
+        return change_of(self.weights, self.colours(), self.palette, palette, edits)
 
     def recoloured(self, palette: np.ndarray, edits: list[LocalEdit] = (),
-                   residual: str = "keep", inside: np.ndarray | None = None) -> SplatFields:
+                   residual: str = "follow", inside: np.ndarray | None = None) -> SplatFields:
         """The splats recoloured (``change``; only those of the (S,) bool mask ``inside``,
         when given): every splat whose colour does not change keeps its coefficients bit
         for bit, the others get ``sh0 + change / SH_C0`` and their view-dependent terms by
@@ -110,7 +105,51 @@ class SplatStack:
             before = np.maximum(self.colours()[moved], SCALE_FLOOR)
             after = np.maximum(np.clip(before + change[moved], 0, 1), SCALE_FLOOR)
             shN[moved] = self.fields.shN[moved] * (after / before)[:, None, :]
+        elif residual == "follow" and shN.shape[1]:
+            maps = self.edit_maps(palette, edits, moved)
+            shN[moved] = np.einsum("sij,sbj->sbi", maps, self.fields.shN[moved])
         return self.fields.with_colour(sh0, shN)
+
+    def edit_maps(self, palette: np.ndarray, edits: list[LocalEdit],
+                  which: np.ndarray) -> np.ndarray:
+        """(n, 3, 3) float64 the edit's local linear map of colours, d c' / d c with
+        c' = c + change(c), at each splat of the (S,) mask ``which``: how a small colour
+        variation about the splat's colour (its view dependence) follows the edit. Finite
+        differences of ``EDIT_STEP`` (away from the cube's faces) through the stack's
+        weight method, once for each colour of 8 bits a channel among them."""
+        codes = np.round(self.colours()[which] * 255).astype(np.int64)
+        unique, inverse = np.unique(codes @ np.array([1 << 16, 1 << 8, 1]), return_inverse=True)
+        colours = np.stack([unique >> 16, (unique >> 8) & 255, unique & 255], 1) / 255.0
+        method = self.source.get("method", "mvc")
+
+        def change(c: np.ndarray) -> np.ndarray:
+            weights = palette_weights(c, self.palette, self.hull_faces, method)
+            return change_of(weights, c, self.palette, palette, edits)
+
+        base = change(colours)
+        maps = np.repeat(np.eye(3)[None], len(colours), 0)
+        for k in range(3):
+            step = np.where(colours[:, k] > 1 - EDIT_STEP, -EDIT_STEP, EDIT_STEP)
+            shifted = colours.copy()
+            shifted[:, k] += step
+            maps[:, :, k] += (change(shifted) - base) / step[:, None]
+        return maps[inverse]
+
+
+def change_of(weights: np.ndarray, colours: np.ndarray, original: np.ndarray,
+              palette: np.ndarray, edits: list[LocalEdit] = ()) -> np.ndarray:
+    """(S, 3) float64 the change of (S, 3) ``colours`` of (S, K) ``weights`` over the
+    ``original`` palette for ``palette`` outside every edit and each edit's palette inside
+    its selection, stacked as ``palette_core.selection`` stacks them:
+    ``w @ (P - P0) + sum_i s_i w @ (P_i - P)``."""
+    weights = np.asarray(weights, np.float64)
+    palette = np.asarray(palette, np.float64)
+    change = weights @ (palette - original)
+    shares = [edit.selection.values("splats", weights, colours) for edit in edits]
+    for i, edit in enumerate(edits):
+        share = shares[i] * np.prod([1 - m for m in shares[i + 1:]], axis=0)
+        change += share[:, None] * (weights @ (np.asarray(edit.palette) - palette))
+    return change
 
 
 def coverage(fields: SplatFields) -> np.ndarray:

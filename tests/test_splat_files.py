@@ -234,7 +234,7 @@ def test_a_selected_edit_leaves_every_other_splat_bit_identical(decomposed, tmp_
     edited[0] = [1.0, 0.0, 0.0]
     with open(tmp_path / "edit.json", "w") as file:
         write_palette_json(file, edited)
-    for residual in ("keep", "scale"):
+    for residual in ("follow", "keep", "scale"):
         out = tmp_path / f"edit-{residual}.ply"
         assert recolor([str(stack_path), "--palette", str(tmp_path / "edit.json"),
                         "--select-colour", "0", "--threshold", "0.3", "--residual", residual,

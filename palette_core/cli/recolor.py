@@ -59,9 +59,10 @@ def build_parser() -> ArgumentParser:
     splats = parser.add_argument_group(
         "splat stacks", "a splat stack from palette-decompose SCENE.ply is recoloured into a "
         "splat file: -o SCENE.ply, .compressed.ply, .spz or .splat (docs/splat_files.md)")
-    splats.add_argument("--residual", choices=("keep", "scale"), default="keep",
-                        help="the splats' view-dependent colour under an edit: keep it, or "
-                             "scale it with the colour (default keep)")
+    splats.add_argument("--residual", choices=("follow", "keep", "scale"), default="follow",
+                        help="the splats' view-dependent colour under an edit: follow the "
+                             "edit's local map of colours (default), keep it, or scale it "
+                             "with the colour")
     return parser
 
 
