@@ -5,7 +5,6 @@ when its input is a splat file or a splat stack."""
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -92,6 +91,5 @@ def harmonize_command(args) -> int:
     path = write_splat_file(stack.recoloured(result.palette), args.output, args.force)
     print(f"{result.fit.template.name}: alpha {result.fit.alpha:.2f} deg, cost "
           f"{result.fit.cost:.1f}\n  palette {' '.join(palette_to_hex(stack.palette))}\n"
-          f"       -> {' '.join(palette_to_hex(result.palette))}\n  wrote {path}",
-          file=sys.stdout)
+          f"       -> {' '.join(palette_to_hex(result.palette))}\n  wrote {path}")
     return 0
