@@ -116,37 +116,43 @@ class _TileComposite(torch.autograd.Function):
     """``_Composite`` on a CPU through the tile kernels of ``tiles``: (pixels, M) values and
     (pixels,) opacity of a view's ``window`` from the projections ``table`` (F, 6), their
     ``box`` (F, 5), the splats' ``index`` (F,) and the ``order`` (D,) of the rows that
-    show, front to back; nothing is held per pair, the backward walks the tiles again.
-    ``info["drawn"]`` receives the splats with a pair."""
+    show, front to back (gathered in that order for the kernels, ``tiles.gathered``);
+    nothing is held per pair, the backward walks the tiles again. ``info["drawn"]``
+    receives the splats with a pair."""
 
     @staticmethod
     def forward(ctx, table, values, box, index, order, window, info):
         left, top, width, height = window
         tiles_x, tiles_y = -(-width // tiles.TILE), -(-height // tiles.TILE)
-        arrays = (table.detach().numpy(), np.ascontiguousarray(box[:, :4].numpy(), np.float64),
-                  values.detach().numpy(), index.numpy())
-        starts, ids = tiles.bin_tiles(arrays[1], order.numpy(), left, top, tiles_x, tiles_y)
+        splats = index.index_select(0, order)  # each gathered row's splat
+        arrays = tiles.gathered(table.detach().numpy(), box.numpy(),
+                                values.detach().index_select(0, splats).numpy(), order.numpy())
+        starts, ids = tiles.bin_tiles(arrays[1], left, top, tiles_x, tiles_y)
         pixels = width * height
         drawn, opacity = np.zeros((pixels, values.shape[1])), np.zeros(pixels)
         last, final = np.empty(pixels, np.int64), np.empty(pixels)
-        shown = np.zeros(len(table), np.bool_)
-        tiles.forward(*arrays, starts, ids, window, tiles_x, drawn, opacity, last, final, shown)
+        shown = np.zeros(len(order), np.bool_)
+        tiles.forward(*arrays, starts, ids, window, tiles_x, tiles.chunks(), drawn, opacity, last,
+                      final, shown)
         if info is not None:
-            info["drawn"] = index[torch.from_numpy(shown)]
+            info["drawn"] = splats[torch.from_numpy(shown)]
         ctx.kernel = (*arrays, starts, ids, window, tiles_x, last, final)
-        ctx.shapes = table.shape, values.shape
+        ctx.rows = order, splats, table.shape, values.shape
         return (torch.from_numpy(drawn).to(values.dtype),
                 torch.from_numpy(opacity).to(values.dtype))
 
     @staticmethod
     def backward(ctx, grad_drawn, grad_opacity):
         geometry = ctx.needs_input_grad[0]
-        (table_shape, values_shape), chunks = ctx.shapes, tiles.chunks()
-        grad_table = np.zeros((chunks if geometry else 1, *table_shape))
-        grad_values = np.zeros((chunks, *values_shape))
+        (order, splats, table_shape, values_shape), chunks = ctx.rows, tiles.chunks()
+        grad_rows = np.zeros((chunks if geometry else 1, len(order), 6))
+        grad_row_values = np.zeros((chunks, len(order), values_shape[1]))
         tiles.backward(*ctx.kernel, np.ascontiguousarray(grad_drawn.numpy(), np.float64),
                        np.ascontiguousarray(grad_opacity.numpy(), np.float64), geometry,
-                       grad_table, grad_values)
+                       grad_rows, grad_row_values)
         dtype = grad_drawn.dtype
-        return (torch.from_numpy(grad_table.sum(0)).to(dtype) if geometry else None,
-                torch.from_numpy(grad_values.sum(0)).to(dtype), None, None, None, None, None)
+        grad_values = grad_drawn.new_zeros(values_shape).index_copy_(
+            0, splats, torch.from_numpy(grad_row_values.sum(0)).to(dtype))
+        grad_table = (grad_drawn.new_zeros(table_shape).index_copy_(
+            0, order, torch.from_numpy(grad_rows.sum(0)).to(dtype)) if geometry else None)
+        return grad_table, grad_values, None, None, None, None, None
