@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from numba import njit, prange
 
 from palette_core.basis import Basis, basis_terms, n_terms
 from palette_core.errors import InputError
@@ -22,6 +23,7 @@ from ..edit.regions import Region
 from .sh import sh_basis
 
 SPLAT_FORMAT = "palette-splats/1"
+BLOCK = 1024  # splats a numba thread takes at a time, its scratch allocated once
 
 
 @dataclass
@@ -141,9 +143,93 @@ def with_residual(weights: torch.Tensor, rest: torch.Tensor, basis: str) -> torc
 
 def covariances(quaternions: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """(S, 3, 3) R diag(s^2) R^T from (S, 4) quaternions (w, x, y, z; any length) and (S, 3)
-    standard deviations s."""
+    standard deviations s (on a CPU in numba, forward and backward: ``_CpuCovariances``)."""
+    if not quaternions.is_cuda:
+        return _CpuCovariances.apply(quaternions, scales)
     rotation = rotation_matrices(quaternions)
     return (rotation * scales[:, None, :] ** 2) @ rotation.transpose(1, 2)
+
+
+class _CpuCovariances(torch.autograd.Function):
+    """``covariances`` on a CPU, where PyTorch's batched 3 x 3 products cost more than the
+    arithmetic: ``_covariances_forward`` and its backward, in float64."""
+
+    @staticmethod
+    def forward(ctx, quaternions, scales):
+        arrays = (quaternions.detach().double().numpy(), scales.detach().double().numpy())
+        ctx.arrays = arrays
+        out = np.empty((len(arrays[0]), 3, 3))
+        _covariances_forward(*arrays, out)
+        return torch.from_numpy(out).to(scales.dtype)
+
+    @staticmethod
+    def backward(ctx, grad):
+        grad_quaternions, grad_scales = np.empty_like(ctx.arrays[0]), np.empty_like(ctx.arrays[1])
+        _covariances_backward(*ctx.arrays, grad.double().numpy(), grad_quaternions, grad_scales)
+        return (torch.from_numpy(grad_quaternions).to(grad.dtype),
+                torch.from_numpy(grad_scales).to(grad.dtype))
+
+
+@njit(cache=True, inline="always")
+def _rotation(q, r):
+    """Into ``r`` (3, 3) the rotation of quaternion ``q`` (w, x, y, z; any length); returns
+    the unit quaternion and the length."""
+    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w, x, y, z = q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
+    r[0, 0], r[0, 1], r[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    r[1, 0], r[1, 1], r[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    r[2, 0], r[2, 1], r[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return w, x, y, z, norm
+
+
+@njit(cache=True, parallel=True)
+def _covariances_forward(quaternions, scales, out):
+    """``out`` (S, 3, 3): R diag(s^2) R^T of each splat."""
+    for block in prange(-(-len(quaternions) // BLOCK)):
+        r = np.empty((3, 3))
+        for s in range(block * BLOCK, min(len(quaternions), (block + 1) * BLOCK)):
+            _rotation(quaternions[s], r)
+            for k in range(3):
+                for n in range(3):
+                    out[s, k, n] = (r[k, 0] * scales[s, 0] ** 2 * r[n, 0]
+                                    + r[k, 1] * scales[s, 1] ** 2 * r[n, 1]
+                                    + r[k, 2] * scales[s, 2] ** 2 * r[n, 2])
+
+
+@njit(cache=True, parallel=True)
+def _covariances_backward(quaternions, scales, grad, grad_quaternions, grad_scales):
+    """The gradients of ``_covariances_forward`` from ``grad`` (S, 3, 3): dL/dR = (G + G^T)
+    R diag(s^2), dL/ds_j = 2 s_j (R^T G R)_jj, then through the rotation of the unit
+    quaternion and its normalisation."""
+    for block in prange(-(-len(quaternions) // BLOCK)):
+        r, g = np.empty((3, 3)), np.empty((3, 3))
+        for s in range(block * BLOCK, min(len(quaternions), (block + 1) * BLOCK)):
+            w, x, y, z, norm = _rotation(quaternions[s], r)
+            for j in range(3):
+                total = 0.0
+                for k in range(3):
+                    for n in range(3):
+                        total += r[k, j] * grad[s, k, n] * r[n, j]
+                grad_scales[s, j] = 2.0 * scales[s, j] * total
+            for k in range(3):
+                for j in range(3):
+                    total = 0.0
+                    for n in range(3):
+                        total += (grad[s, k, n] + grad[s, n, k]) * r[n, j]
+                    g[k, j] = total * scales[s, j] ** 2
+            dw = 2 * (-z * g[0, 1] + y * g[0, 2] + z * g[1, 0] - x * g[1, 2] - y * g[2, 0]
+                      + x * g[2, 1])
+            dx = 2 * (y * g[0, 1] + z * g[0, 2] + y * g[1, 0] - 2 * x * g[1, 1] - w * g[1, 2]
+                      + z * g[2, 0] + w * g[2, 1] - 2 * x * g[2, 2])
+            dy = 2 * (-2 * y * g[0, 0] + x * g[0, 1] + w * g[0, 2] + x * g[1, 0] + z * g[1, 2]
+                      - w * g[2, 0] + z * g[2, 1] - 2 * y * g[2, 2])
+            dz = 2 * (-2 * z * g[0, 0] - w * g[0, 1] + x * g[0, 2] + w * g[1, 0] - 2 * z * g[1, 1]
+                      + y * g[1, 2] + x * g[2, 0] + y * g[2, 1])
+            along = w * dw + x * dx + y * dy + z * dz  # the unit quaternion's normalisation
+            grad_quaternions[s, 0] = (dw - w * along) / norm
+            grad_quaternions[s, 1] = (dx - x * along) / norm
+            grad_quaternions[s, 2] = (dy - y * along) / norm
+            grad_quaternions[s, 3] = (dz - z * along) / norm
 
 
 def rotation_matrices(quaternions: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,7 @@ from ..train.checkpoint import write_checkpoint
 from ..train.run import RunBase, run_fields
 from .model import Splats, covariances, with_residual
 from .rasterise import draw
-from .sh import SH_C0, sh_basis, sh_terms
+from .sh import SH_C0, sh_basis, sh_terms, sh_values
 
 GEOMETRY = ("means", "scales", "quats", "opacities")
 
@@ -51,12 +51,12 @@ class SplatModel(nn.Module):
         degree = self.degree if degree is None else degree
         basis = sh_basis(nn.functional.normalize(self.means - eye, dim=1), degree)[:, 1:]
         if self.kind == RGB:
-            return torch.clamp(SH_C0 * self.colours + 0.5 + _rest(basis, self.colours_rest),
+            return torch.clamp(SH_C0 * self.colours + 0.5 + sh_values(basis, self.colours_rest),
                                min=0)
         weights = ACTIVATIONS[self.kind](self.weights)
         if degree == 0:
             return weights
-        residual = _rest(basis, self.residual)
+        residual = sh_values(basis, self.residual)
         if self.kind == Basis.ADDITIVE:  # on the simplex: the residual sums to zero
             residual = residual - residual.mean(1, keepdim=True)
         return with_residual(weights, residual, self.kind)
@@ -75,12 +75,6 @@ class SplatModel(nn.Module):
         self.weights = nn.Parameter(INVERSE_ACTIVATIONS[kind](weights.clamp(min=1e-4)))
         self.residual = nn.Parameter(weights.new_zeros(len(weights), sh_terms(self.degree) - 1,
                                                        weights.shape[1]))
-
-
-def _rest(basis: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
-    """(S, C) values of degrees 1 and up: (S, B' - 1) ``basis`` x the first B' - 1 of the
-    (S, B - 1, C) ``coefficients``."""
-    return torch.einsum("sb,sbc->sc", basis, coefficients[:, :basis.shape[1]])
 
 
 @dataclass

@@ -11,7 +11,9 @@ B. Kerbl et al. 3D Gaussian splatting for real-time radiance field rendering. SI
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from numba import njit, prange
 
 MAX_DEGREE = 3
 #: The degree-0 constant: a colour c is stored as (c - 0.5) / SH_C0.
@@ -44,3 +46,58 @@ def sh_basis(directions: torch.Tensor, degree: int) -> torch.Tensor:
                   SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
                   SH_C3[6] * x * (xx - 3 * yy)]
     return torch.stack(terms, -1)
+
+
+def sh_values(basis: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
+    """(S, C) values ``basis`` (S, B') x the first B' of the (S, B, C) ``coefficients``: a
+    batched product of a row and a small matrix per splat, on a CPU in numba
+    (``_CpuContraction``), where PyTorch's batched products cost more than the
+    arithmetic."""
+    if basis.is_cuda:
+        return torch.einsum("sb,sbc->sc", basis, coefficients[:, :basis.shape[1]])
+    return _CpuContraction.apply(basis, coefficients)
+
+
+class _CpuContraction(torch.autograd.Function):
+    """``sh_values`` on a CPU, forward and backward."""
+
+    @staticmethod
+    def forward(ctx, basis, coefficients):
+        arrays = (basis.detach().numpy(), coefficients.detach().numpy())
+        ctx.arrays = arrays
+        out = np.empty((len(basis), coefficients.shape[2]), arrays[1].dtype)
+        _contract(*arrays, out)
+        return torch.from_numpy(out).to(coefficients.dtype)
+
+    @staticmethod
+    def backward(ctx, grad):
+        basis, coefficients = ctx.arrays
+        grad_basis, grad_coefficients = np.empty_like(basis), np.zeros_like(coefficients)
+        _contract_backward(basis, coefficients, np.ascontiguousarray(grad.numpy()), grad_basis,
+                           grad_coefficients)
+        return (torch.from_numpy(grad_basis).to(grad.dtype),
+                torch.from_numpy(grad_coefficients).to(grad.dtype))
+
+
+@njit(cache=True, parallel=True)
+def _contract(basis, coefficients, out):
+    """``out`` (S, C): each splat's basis row times its coefficients."""
+    for s in prange(len(basis)):
+        for c in range(coefficients.shape[2]):
+            total = 0.0
+            for b in range(basis.shape[1]):
+                total += basis[s, b] * coefficients[s, b, c]
+            out[s, c] = total
+
+
+@njit(cache=True, parallel=True)
+def _contract_backward(basis, coefficients, grad, grad_basis, grad_coefficients):
+    """d/d basis: the gradient times each coefficient row; d/d coefficients: the basis
+    times the gradient (zero past B')."""
+    for s in prange(len(basis)):
+        for b in range(basis.shape[1]):
+            total = 0.0
+            for c in range(coefficients.shape[2]):
+                total += grad[s, c] * coefficients[s, b, c]
+                grad_coefficients[s, b, c] = grad[s, c] * basis[s, b]
+            grad_basis[s, b] = total
