@@ -1,6 +1,8 @@
-"""The CPU splat rasteriser: a training step of the splats backbone through the tile kernels
-(``splats/tiles.py``) against the pairs in PyTorch that were the CPU's path before, in one
-run, with the pairs a step draws, the pairs a second and the share of a roofline.
+"""The CPU splat rasteriser: a training step of the splats backbone through numba (the tile
+kernels of ``splats/tiles.py``, the projection, covariances and spherical harmonics' values
+of ``projection.py``, ``model.py`` and ``sh.py``) against PyTorch throughout (pairs, and
+PyTorch's per-splat products: the CPU's path before the kernels, and CUDA's), in one run,
+with the pairs a step draws, the pairs a second and the share of a roofline.
 
 A step is what ``splats.backbone._loss`` and ``SplatSteps.update`` do in the RGB stage:
 the splats' covariances and their colours in spherical harmonics of degree 3 seen from the
@@ -8,7 +10,7 @@ camera, a draw of the view (cut off at the default reach), 0.8 L1 + 0.2 (1 - SSI
 an image, the backward and an Adam step. The splats are ``--splats`` random ones in front
 of a ``--size`` camera (centres at depths 2 to 6 across the view, log-normal scales whose
 median projects to about ``--radius`` pixels, opacities uniform), or a trained run's
-(``--run``) seen from its first training camera. Each mode runs in a fresh process (its
+(``--run``: its geometry, random colours) seen from its first training camera. Each mode runs in a fresh process (its
 peak resident memory is the process's), ``--steps`` steps after two of warm-up, the
 median's time reported, and the draw's forward and backward apart.
 
@@ -36,6 +38,7 @@ from pathlib import Path
 import numpy as np
 from results import table, write_result
 
+NAMES = {"pairs": "PyTorch: pairs, per-splat products", "tiles": "numba: tiles, per-splat kernels"}
 EXP_OPS = 20  # an exponential as floating-point operations (a polynomial and a scaling)
 #: forward: box test and offsets 6, the quadratic form 8, the exponential, alpha 2, the
 #: blend of 3 values and the opacity 9, the light 2; backward: the same again (alpha is
@@ -69,8 +72,11 @@ def scene(splats: int, width: int, height: int, radius: float, seed: int = 0):
 
 
 def trained_scene(run_dir: str):
-    """A trained splat run's tensors, its first training camera and pose."""
+    """A trained splat run's geometry with random colours, its first training camera and
+    pose."""
     import torch
+
+    from nerf_stage.splats.run import GEOMETRY
 
     from nerf_stage.train.loading import load_run
 
@@ -79,7 +85,10 @@ def trained_scene(run_dir: str):
     view = dataset.indices("train")[0]
     pose = torch.as_tensor(dataset.poses[view], dtype=torch.float32)
     pose[:3, 3] = (pose[:3, 3] - torch.as_tensor(run.box.centre)) / run.box.scale
-    tensors = {name: p.detach().clone() for name, p in run.model.named_parameters()}
+    tensors = {name: getattr(run.model, name).detach().clone() for name in GEOMETRY}
+    g = torch.Generator().manual_seed(0)  # colours of degree 3 (a palette-stage run has none)
+    tensors["colours"] = torch.randn(len(tensors["means"]), 3, generator=g) * 0.5
+    tensors["colours_rest"] = torch.randn(len(tensors["means"]), 15, 3, generator=g) * 0.05
     return tensors, dataset.camera(view), pose
 
 
@@ -94,6 +103,8 @@ def measure(mode: str, args) -> dict:
     from nerf_stage.train.losses import ssim_loss
 
     rasterise.TILED = mode == "tiles"
+    if mode == "pairs":
+        pytorch_throughout()
     width, height = map(int, args.size.split("x"))
     tensors, camera, pose = (trained_scene(args.run) if args.run else
                              scene(args.splats, width, height, args.radius))
@@ -128,6 +139,23 @@ def measure(mode: str, args) -> dict:
             "backward_s": float(np.median(backwards)), "pairs": pairs,
             "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "threads": torch.get_num_threads()}
+
+
+def pytorch_throughout() -> None:
+    """The per-splat steps in PyTorch on a CPU too, as on CUDA: the projection, the
+    covariances and the spherical harmonics' values."""
+    import torch
+
+    from nerf_stage.splats import model, projection, sh
+
+    def torch_covariances(quaternions, scales):
+        rotation = model.rotation_matrices(quaternions)
+        return (rotation * scales[:, None, :] ** 2) @ rotation.transpose(1, 2)
+
+    projection._CpuProjection.apply = projection._projected
+    model._CpuCovariances.apply = torch_covariances
+    sh._CpuContraction.apply = lambda basis, coefficients: torch.einsum(
+        "sb,sbc->sc", basis, coefficients[:, :basis.shape[1]])
 
 
 def count_pairs(model, pose, camera, reach) -> int:
@@ -192,16 +220,16 @@ def main() -> None:
     made = table(f"A splat training step: {rows['tiles']['splats']:,} splats at "
                  f"{rows['tiles']['size']}, {rows['tiles']['pairs']:,} pairs "
                  f"(median of {args.steps})",
-                 ["rasteriser", "step s", "draw s", "backward s", "pairs / s (step)",
+                 ["CPU path", "step s", "draw s", "backward s", "pairs / s (step)",
                   "share of the roofline", "peak MB"],
-                 [[mode, round(r["step_s"], 3), round(r["draw_s"], 3),
+                 [[NAMES[mode], round(r["step_s"], 3), round(r["draw_s"], 3),
                    round(r["backward_s"], 3), f"{r['pairs'] / r['step_s']:.3g}",
                    f"{100 * r['pairs'] * OPS_PER_PAIR / r['step_s'] / peak:.1f} %",
                    round(r["peak_mb"])] for mode, r in rows.items()])
     speed_up = rows["pairs"]["step_s"] / rows["tiles"]["step_s"]
-    print(f"tiles {speed_up:.1f} times as fast a step; machine peak {peak / 1e9:.1f} GFLOP/s "
+    print(f"numba {speed_up:.1f} times as fast a step; machine peak {peak / 1e9:.1f} GFLOP/s "
           f"of scalar fused multiply-adds on {rows['tiles']['threads']} threads")
-    write_result("rasteriser", "The CPU splat rasteriser: tiles against pairs", [made],
+    write_result("rasteriser", "The CPU splat rasteriser: numba against PyTorch", [made],
                  {"modes": rows, "speed_up": speed_up, "peak_flops": peak,
                   "ops_per_pair": OPS_PER_PAIR})
 
