@@ -10,9 +10,10 @@ camera, a draw of the view (cut off at the default reach), 0.8 L1 + 0.2 (1 - SSI
 an image, the backward and an Adam step. The splats are ``--splats`` random ones in front
 of a ``--size`` camera (centres at depths 2 to 6 across the view, log-normal scales whose
 median projects to about ``--radius`` pixels, opacities uniform), or a trained run's
-(``--run``: its geometry, random colours) seen from its first training camera. Each mode runs in a fresh process (its
-peak resident memory is the process's), ``--steps`` steps after two of warm-up, the
-median's time reported, and the draw's forward and backward apart.
+(``--run``: its geometry, random colours) seen from its first training camera. Each mode
+runs in a fresh process (its peak resident memory is the process's), ``--steps`` steps
+after two of warm-up, the median's time reported, and the draw's forward and backward
+apart.
 
 Pairs: the (pixel, splat) pairs the step blends (alpha at least 1/255, light left at
 least 1e-4). The roofline: each pair costs about ``OPS_PER_PAIR`` floating-point operations
@@ -77,7 +78,6 @@ def trained_scene(run_dir: str):
     import torch
 
     from nerf_stage.splats.run import GEOMETRY
-
     from nerf_stage.train.loading import load_run
 
     run = load_run(run_dir)

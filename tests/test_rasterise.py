@@ -173,6 +173,44 @@ def test_the_tile_kernels_match_the_pairs_in_pytorch(monkeypatch, reach):
 
 
 
+@pytest.mark.parametrize("reach", [None, 8])
+def test_the_tile_kernels_keep_the_pairs_in_pytorchs_order(monkeypatch, reach):
+    """The pairs a footprint is made of (``draw(..., keep_pairs=True)``) through the tile
+    kernels (``tiles.walk_pairs``) and through PyTorch, on 300 random splats: both by pixel,
+    then front to back, the same pairs (those of a contribution above 1e-3 at least) with
+    the same contributions within 1e-5, and the same values and opacity."""
+    from nerf_stage.data.cameras import Intrinsics
+
+    camera = Intrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=32.0, cy=24.0)
+    means, log_scales, quats, opacities, values = (t.detach() for t in _random_scene())
+    kept = []
+    for tiled in (True, False):
+        monkeypatch.setattr(rasterise, "TILED", tiled)
+        info = {}
+        drawn = draw(means, covariances(quats, log_scales.exp()), values, opacities,
+                     POSE.float(), camera, reach, info, keep_pairs=True)
+        kept.append((drawn, info["pairs"], info["drawn"]))
+    (tile_drawn, tile_pairs, tile_splats), (torch_drawn, torch_pairs, torch_splats) = kept
+    for a, b in zip(tile_drawn, torch_drawn):
+        assert (a - b).abs().max() <= 1e-4
+    pairs_of = []
+    for pixel, splat, contribution in (tile_pairs, torch_pairs):
+        assert (torch.diff(pixel.long()) >= 0).all()
+        pairs_of.append({(int(p), int(q)): float(c) for p, q, c in zip(pixel, splat, contribution)})
+    tiles_kept, torch_kept = pairs_of
+    for one, other in ((tiles_kept, torch_kept), (torch_kept, tiles_kept)):
+        assert all(pair in other for pair, c in one.items() if c > 1e-3)
+    common = tiles_kept.keys() & torch_kept.keys()
+    assert len(common) > 1000
+    assert max(abs(tiles_kept[pair] - torch_kept[pair]) for pair in common) <= 1e-5
+    order = {}  # front to back within each pixel: the same sequence of splats
+    for pixel, splat, _ in (tile_pairs, torch_pairs):
+        for p, q in zip(pixel.tolist(), splat.tolist()):
+            order.setdefault(p, ([], []))[pixel is tile_pairs[0] and 0 or 1].append(q)
+    assert all(a[:len(b)] == b[:len(a)] for a, b in order.values())
+    assert set(tile_splats.tolist()) == set(torch_splats.tolist())
+
+
 def test_the_cpu_projection_matches_pytorchs():
     """The numba projection of a CPU (``projection._CpuProjection``) against PyTorch's
     (``_projected``, as on CUDA) from a turned camera, on splats in front of and behind it

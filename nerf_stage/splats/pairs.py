@@ -1,8 +1,8 @@
 """Drawing a view as (pixel, splat) pairs in PyTorch: each splat's ellipse walked row by
 row (a band of the view's rows at a time on a CPU), the pairs sorted by pixel, then front
 to back, and blended by their transmittance (a float64 running sum of logarithms); a
-custom backward that keeps 12 bytes a pair. CUDA draws so, and the palette stage's
-footprints are made so (``draw(..., keep_pairs=True)``).
+custom backward that keeps 12 bytes a pair. CUDA draws so, and makes the palette stage's
+footprints so (``draw(..., keep_pairs=True)``); a CPU with ``rasterise.TILED`` off too.
 """
 
 from __future__ import annotations

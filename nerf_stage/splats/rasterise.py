@@ -1,7 +1,8 @@
 """The differentiable splat rasteriser: EWA splatting of 3D Gaussians blended front to back
-per pixel, as 3D Gaussian splatting draws them. The splats are projected in PyTorch
-(``projection``), then drawn on a CPU by the numba tile kernels (``tiles``) and on CUDA,
-and for the palette stage's footprints, as (pixel, splat) pairs in PyTorch (``pairs``).
+per pixel, as 3D Gaussian splatting draws them. The splats are projected
+(``projection``), then drawn on a CPU by the numba tile kernels (``tiles``), which also
+give the palette stage's footprints their pairs, and on CUDA as (pixel, splat) pairs in
+PyTorch (``pairs``).
 Pairs below 1/255 or behind ``MIN_TRANSMITTANCE`` of light are dropped, and each pixel's
 values are the sum of its pairs' transmittance x alpha x values.
 
@@ -29,8 +30,8 @@ from .tiles import MAX_ALPHA, MIN_TRANSMITTANCE
 __all__ = ["LOW_PASS", "MAX_ALPHA", "MIN_TRANSMITTANCE", "TILED", "draw", "render_splats",
            "splat_tensors"]
 
-#: Whether a CPU draws through the tile kernels (``tiles``); False: through pairs in PyTorch,
-#: a band at a time, as CUDA does and as the palette stage's footprints are made.
+#: Whether a CPU draws (and finds a footprint's pairs) through the tile kernels (``tiles``);
+#: False: through pairs in PyTorch, a band at a time, as CUDA does.
 TILED = True
 
 
@@ -84,8 +85,10 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     and contribution (transmittance x alpha) of every pair drawn, by pixel, front to back."""
     window = window or (0, 0, camera.width, camera.height)
     pixels = window[2] * window[3]
-    if TILED and not centres.is_cuda and not keep_pairs:
+    if TILED and not centres.is_cuda:
         projected = project(centres, covariances, opacities, pose, camera, reach, info, window)
+        if projected is not None and keep_pairs:
+            return _tile_pairs(values, *projected, window, info)
         if projected is not None:
             table, box, index, order = projected
             return _TileComposite.apply(table, values, box, index, order, window, info)
@@ -110,6 +113,34 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
             part.copy_(index.index_select(0, part))
     info["pairs"] = (pixel, ids, light)
     return blended
+
+
+@torch.no_grad()
+def _tile_pairs(values, table, box, index, order, window, info):
+    """``draw`` with ``keep_pairs`` through the tile kernels: ``info["pairs"]`` and
+    ``info["drawn"]`` from ``tiles.walk_pairs``, the view's values and opacity summed from
+    the pairs."""
+    left, top, width, height = window
+    tiles_x, tiles_y = -(-width // tiles.TILE), -(-height // tiles.TILE)
+    splats = index.index_select(0, order)
+    arrays = tiles.gathered(table.detach().numpy(), box.numpy(), np.zeros((len(order), 0)),
+                            order.numpy())
+    starts, ids = tiles.bin_tiles(arrays[1], left, top, tiles_x, tiles_y)
+    walk = (arrays[0], arrays[1], starts, ids, window, tiles_x, tiles.chunks())
+    offsets = np.zeros(width * height + 1, np.int64)
+    tiles.walk_pairs(*walk, False, offsets, *(np.zeros(0, dtype) for dtype in
+                                               (np.int32, np.int32, np.float64)))
+    offsets = np.cumsum(offsets)
+    pixel, row = np.empty(offsets[-1], np.int32), np.empty(offsets[-1], np.int32)
+    contribution = np.empty(offsets[-1])
+    tiles.walk_pairs(*walk, True, offsets[:-1].copy(), pixel, row, contribution)
+    pixel, splat = torch.from_numpy(pixel), splats.index_select(0, torch.from_numpy(row)).int()
+    contribution = torch.from_numpy(contribution).to(values.dtype)
+    info["pairs"] = (pixel, splat, contribution)
+    info["drawn"] = torch.unique(splat).long()
+    drawn = values.new_zeros(width * height, values.shape[1]).index_add_(
+        0, pixel, contribution[:, None] * values.index_select(0, splat))
+    return drawn, values.new_zeros(width * height).index_add_(0, pixel, contribution)
 
 
 class _TileComposite(torch.autograd.Function):

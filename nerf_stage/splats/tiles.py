@@ -196,6 +196,55 @@ def forward(table, box, values, starts, ids, window, tiles_x, chunks, drawn, opa
 
 
 @njit(cache=True, parallel=True)
+def walk_pairs(table, box, starts, ids, window, tiles_x, chunks, write, offsets, pixel, row,
+               contribution):
+    """``forward``'s pairs, without values: with ``write`` False, each pixel's count of pairs
+    into ``offsets`` (pixels + 1,) at pixel + 1; with ``write``, from ``offsets`` (their
+    running sum) each pair's pixel (of the window), ``row`` and contribution (transmittance
+    x alpha) into the (P,) arrays, by pixel, front to back."""
+    left, top, width, _ = window
+    n_tiles = len(starts) - 1
+    for chunk in prange(chunks):
+        light = np.empty(TILE * TILE)
+        for tile in range(chunk, n_tiles, chunks):
+            x0, x1, y0, y1 = _tile_rect(tile, tiles_x, window)
+            light[:] = 1.0
+            open_pixels = (x1 - x0) * (y1 - y0)
+            for j in range(starts[tile], starts[tile + 1]):
+                if open_pixels == 0:
+                    break
+                d = ids[j]
+                if table[d, LEVEL] < 0.0:
+                    continue
+                peak, step = table[d, PEAK], table[d, STEP]
+                for py in range(max(y0, int(box[d, 2])), min(y1, int(box[d, 3]))):
+                    xa, xb = _span(table, box, d, py, x0, x1)
+                    if xa >= xb:
+                        continue
+                    gaussian, ratio = _row_gaussian(table, d, xa + 0.5 - table[d, U],
+                                                    py + 0.5 - table[d, V])
+                    first = (py - y0) * TILE - x0
+                    for px in range(xa, xb):
+                        k = first + px
+                        alpha = min(MAX_ALPHA, peak * gaussian)
+                        gaussian, ratio = gaussian * ratio, ratio * step
+                        t = light[k]
+                        if t < MIN_TRANSMITTANCE or alpha < MIN_ALPHA:
+                            continue
+                        place = (py - top) * width + px - left
+                        if write:
+                            at = offsets[place]
+                            pixel[at], row[at], contribution[at] = place, d, t * alpha
+                            offsets[place] = at + 1
+                        else:
+                            offsets[place + 1] += 1
+                        t *= 1.0 - alpha
+                        light[k] = t
+                        if t < MIN_TRANSMITTANCE:
+                            open_pixels -= 1
+
+
+@njit(cache=True, parallel=True)
 def backward(table, box, values, starts, ids, window, tiles_x, last, final, grad_drawn,
              grad_opacity, geometry, grad_table, grad_values):
     """The gradients of ``forward``'s sums with respect to the rows' projections and
