@@ -210,7 +210,7 @@ class SplatConfig:
     colours_lr: float = 2.5e-3
     """Adam learning rate of the degree-0 colour (RGB stage); degrees above it take a
     twentieth."""
-    weights_lr: float = 3e-2
+    weights_lr: float = 3e-3
     """Adam learning rate of the palette weights at the start of the palette stage (it
     decays to ``lr_decay`` of this over the stage); their view-dependent residual takes a
     twentieth."""
