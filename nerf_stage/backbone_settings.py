@@ -213,7 +213,7 @@ class SplatConfig:
     weights_lr: float = 3e-3
     """Adam learning rate of the palette weights at the start of the palette stage (it
     decays to ``lr_decay`` of this over the stage); their view-dependent residual takes a
-    twentieth."""
+    twentieth (docs/decisions/0021-palette-stage-rate.md)."""
 
     def __post_init__(self):
         integers(self, 1, MAX_SPLATS, "initial", "max_splats")
