@@ -118,29 +118,33 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
 @torch.no_grad()
 def _tile_pairs(values, table, box, index, order, window, info):
     """``draw`` with ``keep_pairs`` through the tile kernels: ``info["pairs"]`` and
-    ``info["drawn"]`` from ``tiles.walk_pairs``, the view's values and opacity summed from
-    the pairs."""
+    ``info["drawn"]`` from ``tiles.forward``'s pairs, counted, then kept; the view's values
+    and opacity summed from them."""
     left, top, width, height = window
     tiles_x, tiles_y = -(-width // tiles.TILE), -(-height // tiles.TILE)
-    splats = index.index_select(0, order)
+    splats, pixels = index.index_select(0, order), width * height
     arrays = tiles.gathered(table.detach().numpy(), box.numpy(), np.zeros((len(order), 0)),
                             order.numpy())
     starts, ids = tiles.bin_tiles(arrays[1], left, top, tiles_x, tiles_y)
-    walk = (arrays[0], arrays[1], starts, ids, window, tiles_x, tiles.chunks())
-    offsets = np.zeros(width * height + 1, np.int64)
-    tiles.walk_pairs(*walk, False, offsets, *(np.zeros(0, dtype) for dtype in
-                                               (np.int32, np.int32, np.float64)))
+
+    def walk(pairs):
+        tiles.forward(*arrays, starts, ids, window, tiles_x, tiles.chunks(),
+                      np.zeros((pixels, 0)), np.zeros(pixels), np.empty(pixels, np.int64),
+                      np.empty(pixels), np.zeros(len(order), np.bool_), pairs)
+
+    offsets = np.zeros(pixels + 1, np.int64)
+    walk((tiles.COUNT_PAIRS, offsets, *tiles.no_pairs()[2:]))
     offsets = np.cumsum(offsets)
     pixel, row = np.empty(offsets[-1], np.int32), np.empty(offsets[-1], np.int32)
     contribution = np.empty(offsets[-1])
-    tiles.walk_pairs(*walk, True, offsets[:-1].copy(), pixel, row, contribution)
+    walk((tiles.KEEP_PAIRS, offsets[:-1].copy(), pixel, row, contribution))
     pixel, splat = torch.from_numpy(pixel), splats.index_select(0, torch.from_numpy(row)).int()
     contribution = torch.from_numpy(contribution).to(values.dtype)
     info["pairs"] = (pixel, splat, contribution)
     info["drawn"] = torch.unique(splat).long()
-    drawn = values.new_zeros(width * height, values.shape[1]).index_add_(
+    drawn = values.new_zeros(pixels, values.shape[1]).index_add_(
         0, pixel, contribution[:, None] * values.index_select(0, splat))
-    return drawn, values.new_zeros(width * height).index_add_(0, pixel, contribution)
+    return drawn, values.new_zeros(pixels).index_add_(0, pixel, contribution)
 
 
 class _TileComposite(torch.autograd.Function):
@@ -164,7 +168,7 @@ class _TileComposite(torch.autograd.Function):
         last, final = np.empty(pixels, np.int64), np.empty(pixels)
         shown = np.zeros(len(order), np.bool_)
         tiles.forward(*arrays, starts, ids, window, tiles_x, tiles.chunks(), drawn, opacity, last,
-                      final, shown)
+                      final, shown, tiles.no_pairs())
         if info is not None:
             info["drawn"] = splats[torch.from_numpy(shown)]
         ctx.kernel = (*arrays, starts, ids, window, tiles_x, last, final)

@@ -39,6 +39,7 @@ MIN_TRANSMITTANCE = 1e-4
 #: Pixels of slack at each end of a row's span in the ellipse (rounding; alpha decides).
 SPAN_SLACK = 1e-6
 U, V, A, B, C, PEAK, LEVEL, STEP, INV_A = range(9)  # the columns of a gathered table
+NO_PAIRS, COUNT_PAIRS, KEEP_PAIRS = range(3)  # what ``forward`` records of its pairs
 
 
 @njit(cache=True, parallel=True)
@@ -136,14 +137,20 @@ def _span(table, box, d, py, x0, x1):
 
 @njit(cache=True, parallel=True)
 def forward(table, box, values, starts, ids, window, tiles_x, chunks, drawn, opacity, last,
-            final, shown):
+            final, shown, pairs):
     """Blend every pixel of ``window`` (left, top, width, height) front to back: ``drawn``
     (pixels, M) and ``opacity`` (pixels,) receive the sums of transmittance x alpha x
     ``values`` (D, M); ``last`` (pixels,) the end in ``ids`` of each pixel's pairs,
     ``final`` its transmittance behind them, for the backward; ``shown`` (D,) is set where
     a row has a pair. A tile's rows are taken in depth order, each over the pixels of its
     ellipse (``_span``), the tile's pixels keeping their light: a pixel is left once its
-    light is below ``MIN_TRANSMITTANCE``. The tiles are dealt to ``chunks`` threads in turn."""
+    light is below ``MIN_TRANSMITTANCE``. The tiles are dealt to ``chunks`` threads in turn.
+
+    ``pairs`` (``NO_PAIRS``, ``COUNT_PAIRS`` or ``KEEP_PAIRS``, offsets (pixels + 1,),
+    pixel, row, contribution (P,)) records the pairs: counted by pixel into offsets at
+    pixel + 1, or, from offsets (their running sum), each pair's pixel (of the window),
+    row and contribution (transmittance x alpha) kept, by pixel, front to back."""
+    record, offsets, kept_pixel, kept_row, kept_contribution = pairs
     left, top, width, _ = window
     channels, n_tiles = values.shape[1], len(starts) - 1
     for chunk in prange(chunks):
@@ -180,6 +187,14 @@ def forward(table, box, values, starts, ids, window, tiles_x, chunks, drawn, opa
                         for m in range(channels):
                             tile_drawn[k, m] += weight * values[d, m]
                         tile_opacity[k] += weight
+                        if record != NO_PAIRS:
+                            place = (py - top) * width + px - left
+                            if record == COUNT_PAIRS:
+                                offsets[place + 1] += 1
+                            else:
+                                at = offsets[place]
+                                kept_pixel[at], kept_row[at] = place, d
+                                kept_contribution[at], offsets[place] = weight, at + 1
                         t *= 1.0 - alpha
                         light[k], end[k], hit = t, j + 1, True
                         if t < MIN_TRANSMITTANCE:
@@ -193,55 +208,6 @@ def forward(table, box, values, starts, ids, window, tiles_x, chunks, drawn, opa
                     opacity[pixel] = tile_opacity[k]
                     for m in range(channels):
                         drawn[pixel, m] = tile_drawn[k, m]
-
-
-@njit(cache=True, parallel=True)
-def walk_pairs(table, box, starts, ids, window, tiles_x, chunks, write, offsets, pixel, row,
-               contribution):
-    """``forward``'s pairs, without values: with ``write`` False, each pixel's count of pairs
-    into ``offsets`` (pixels + 1,) at pixel + 1; with ``write``, from ``offsets`` (their
-    running sum) each pair's pixel (of the window), ``row`` and contribution (transmittance
-    x alpha) into the (P,) arrays, by pixel, front to back."""
-    left, top, width, _ = window
-    n_tiles = len(starts) - 1
-    for chunk in prange(chunks):
-        light = np.empty(TILE * TILE)
-        for tile in range(chunk, n_tiles, chunks):
-            x0, x1, y0, y1 = _tile_rect(tile, tiles_x, window)
-            light[:] = 1.0
-            open_pixels = (x1 - x0) * (y1 - y0)
-            for j in range(starts[tile], starts[tile + 1]):
-                if open_pixels == 0:
-                    break
-                d = ids[j]
-                if table[d, LEVEL] < 0.0:
-                    continue
-                peak, step = table[d, PEAK], table[d, STEP]
-                for py in range(max(y0, int(box[d, 2])), min(y1, int(box[d, 3]))):
-                    xa, xb = _span(table, box, d, py, x0, x1)
-                    if xa >= xb:
-                        continue
-                    gaussian, ratio = _row_gaussian(table, d, xa + 0.5 - table[d, U],
-                                                    py + 0.5 - table[d, V])
-                    first = (py - y0) * TILE - x0
-                    for px in range(xa, xb):
-                        k = first + px
-                        alpha = min(MAX_ALPHA, peak * gaussian)
-                        gaussian, ratio = gaussian * ratio, ratio * step
-                        t = light[k]
-                        if t < MIN_TRANSMITTANCE or alpha < MIN_ALPHA:
-                            continue
-                        place = (py - top) * width + px - left
-                        if write:
-                            at = offsets[place]
-                            pixel[at], row[at], contribution[at] = place, d, t * alpha
-                            offsets[place] = at + 1
-                        else:
-                            offsets[place + 1] += 1
-                        t *= 1.0 - alpha
-                        light[k] = t
-                        if t < MIN_TRANSMITTANCE:
-                            open_pixels -= 1
 
 
 @njit(cache=True, parallel=True)
@@ -337,3 +303,9 @@ def _add_table_gradient(out, table, d, dx, dy, gaussian, grad_alpha):
 def chunks() -> int:
     """How many slices ``backward`` sums its gradients in: one a thread."""
     return numba.get_num_threads()
+
+
+def no_pairs() -> tuple:
+    """``forward``'s ``pairs`` when none are recorded."""
+    return (NO_PAIRS, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int32),
+            np.zeros(0))
