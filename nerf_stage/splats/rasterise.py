@@ -115,22 +115,32 @@ def draw(centres, covariances, values, opacities, pose: torch.Tensor, camera: In
     return blended
 
 
+def _binned(table, box, index, order, values, window):
+    """What the tile kernels read of a view's projections: each gathered row's splat (D,),
+    the rows with ``values`` (``tiles.gathered``), each tile's rows (``tiles.bin_tiles``) and
+    the tiles across the ``window``."""
+    left, top, width, height = window
+    tiles_x, tiles_y = -(-width // tiles.TILE), -(-height // tiles.TILE)
+    splats = index.index_select(0, order)
+    arrays = tiles.gathered(table.detach().numpy(), box.numpy(),
+                            values.detach().index_select(0, splats).numpy(), order.numpy())
+    return splats, arrays, *tiles.bin_tiles(arrays[1], left, top, tiles_x, tiles_y), tiles_x
+
+
 @torch.no_grad()
 def _tile_pairs(values, table, box, index, order, window, info):
     """``draw`` with ``keep_pairs`` through the tile kernels: ``info["pairs"]`` and
     ``info["drawn"]`` from ``tiles.forward``'s pairs, counted, then kept; the view's values
     and opacity summed from them."""
-    left, top, width, height = window
-    tiles_x, tiles_y = -(-width // tiles.TILE), -(-height // tiles.TILE)
-    splats, pixels = index.index_select(0, order), width * height
-    arrays = tiles.gathered(table.detach().numpy(), box.numpy(), np.zeros((len(order), 0)),
-                            order.numpy())
-    starts, ids = tiles.bin_tiles(arrays[1], left, top, tiles_x, tiles_y)
+    pixels = window[2] * window[3]
+    splats, arrays, starts, ids, tiles_x = _binned(table, box, index, order,
+                                                   values.new_zeros(len(values), 0), window)
+    shown = np.zeros(len(order), np.bool_)
 
     def walk(pairs):
         tiles.forward(*arrays, starts, ids, window, tiles_x, tiles.chunks(),
                       np.zeros((pixels, 0)), np.zeros(pixels), np.empty(pixels, np.int64),
-                      np.empty(pixels), np.zeros(len(order), np.bool_), pairs)
+                      np.empty(pixels), shown, pairs)
 
     offsets = np.zeros(pixels + 1, np.int64)
     walk((tiles.COUNT_PAIRS, offsets, *tiles.no_pairs()[2:]))
@@ -141,7 +151,7 @@ def _tile_pairs(values, table, box, index, order, window, info):
     pixel, splat = torch.from_numpy(pixel), splats.index_select(0, torch.from_numpy(row)).int()
     contribution = torch.from_numpy(contribution).to(values.dtype)
     info["pairs"] = (pixel, splat, contribution)
-    info["drawn"] = torch.unique(splat).long()
+    info["drawn"] = splats[torch.from_numpy(shown)]
     drawn = values.new_zeros(pixels, values.shape[1]).index_add_(
         0, pixel, contribution[:, None] * values.index_select(0, splat))
     return drawn, values.new_zeros(pixels).index_add_(0, pixel, contribution)
@@ -157,13 +167,8 @@ class _TileComposite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, table, values, box, index, order, window, info):
-        left, top, width, height = window
-        tiles_x, tiles_y = -(-width // tiles.TILE), -(-height // tiles.TILE)
-        splats = index.index_select(0, order)  # each gathered row's splat
-        arrays = tiles.gathered(table.detach().numpy(), box.numpy(),
-                                values.detach().index_select(0, splats).numpy(), order.numpy())
-        starts, ids = tiles.bin_tiles(arrays[1], left, top, tiles_x, tiles_y)
-        pixels = width * height
+        splats, arrays, starts, ids, tiles_x = _binned(table, box, index, order, values, window)
+        pixels = window[2] * window[3]
         drawn, opacity = np.zeros((pixels, values.shape[1])), np.zeros(pixels)
         last, final = np.empty(pixels, np.int64), np.empty(pixels)
         shown = np.zeros(len(order), np.bool_)
