@@ -4,6 +4,7 @@ exports (the rasteriser: ``test_rasterise.py``; the start: ``test_splat_start.py
 
 import math
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from nerf_stage.train.config import TrainConfig  # noqa: E402
 from nerf_stage.train.loading import load_run  # noqa: E402
 from palette_core.basis import Basis  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
+from palette_core.stack import WeightStack  # noqa: E402
 
 from .helpers import expect_error  # noqa: E402
 from .splat_cases import CAMERA, PIXELS, POSE, few_splats  # noqa: E402
@@ -373,12 +375,34 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run, at_once,
     views = [replace(v, weights=(f.opacity[:, None] * one).view(v.weights.shape))
              for v, f in zip(views, held)]
     started = _before_the_palette_stage(run)
-    backbone._start_palette(started, views)
+    backbone._start_palette(started, views, WeightStack(run.palette, [], [], basis=run.basis))
     assert not started.model.means.requires_grad
     weights = ACTIVATIONS[started.kind](started.model.weights.detach())
     for view, footprint in zip(views, held):
         assert torch.allclose(footprint.matrix @ weights, view.weights.view(-1, channels),
                               atol=1e-4)
+
+
+def test_an_additive_palette_stage_starts_at_the_colours_the_rgb_stage_ended_with():
+    """Each splat's weights through the palette give its RGB colour from every direction:
+    its own colour's weights, its spherical harmonics through the residual."""
+    g = torch.Generator().manual_seed(0)
+    n, degree = 50, 3
+    tensors = {"means": torch.randn(n, 3, generator=g), "scales": torch.zeros(n, 3),
+               "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), "opacities": torch.zeros(n),
+               "colours": (0.3 + 0.4 * torch.rand(n, 3, generator=g) - 0.5) / SH_C0,
+               "colours_rest": 0.01 * torch.randn(n, sh_terms(degree) - 1, 3, generator=g)}
+    model = SplatModel(tensors, RGB, degree)
+    eye = torch.tensor([0.0, 0.0, 5.0])
+    rgb = model.values(eye).detach()
+    palette = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0.1, 0.9)])
+    run = SimpleNamespace(model=model, basis=Basis.ADDITIVE)
+    backbone._start_palette(run, [], WeightStack(palette.astype(np.float32), [], []))
+    assert model.kind == Basis.ADDITIVE and not model.means.requires_grad
+    weights = model.values(eye).detach()
+    assert torch.allclose(weights.sum(1), torch.ones(n), atol=1e-5)
+    assert torch.allclose(weights @ torch.as_tensor(palette, dtype=torch.float32), rgb,
+                          atol=1e-3)
 
 
 def test_a_checkpoint_with_splats_of_the_wrong_shape_is_refused(splat_run, tmp_path, capsys):

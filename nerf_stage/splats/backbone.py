@@ -32,6 +32,7 @@ import torch
 
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
+from palette_core.weights import palette_weights, per_colour
 
 from ..backbone_settings import SplatConfig
 from ..data.dataset import Dataset
@@ -56,6 +57,7 @@ from .footprints import (
 )
 from .rasterise import draw
 from .run import SplatModel, SplatRun, load_run, save_checkpoint
+from .sh import SH_C0
 from .start import (
     HULL_CELLS,
     MIN_POINTS,
@@ -132,7 +134,7 @@ def _started_run(config: TrainConfig, dataset: Dataset, stack, box: SceneBox, tr
 class SplatSteps:
     """The steps of the splats backbone (``loop.Steps``): one training view (a random patch
     of it in the RGB stage) a step; densification after each RGB step; at the palette
-    stage's start the geometry frozen, the weights started from the views
+    stage's start the geometry frozen, the weights started where the RGB stage ended
     (``_start_palette``) and the views' footprints made (``footprints.Window``); the targets
     made exposure-free then and at every checkpoint."""
 
@@ -173,7 +175,7 @@ class SplatSteps:
         run, config = self.run, self.run.config
         if it >= config.pretrain_iters and run.kind == RGB:
             _exposure_free(run, self.stack, self.views)
-            _start_palette(run, self.views)
+            _start_palette(run, self.views, self.stack)
             self.window = Window.made(run, self.views)
             self.optimiser = _optimiser(run, self.extent)
         elif run.kind != RGB and it % config.checkpoint_every == 0:
@@ -264,13 +266,39 @@ def _exposure_free(run: SplatRun, stack, views: list) -> None:
 
 
 @torch.no_grad()
-def _start_palette(run: SplatRun, views: list) -> None:
-    """Freeze the geometry and start each splat's weights at the mean of the training
-    weights it sends light to, weighted by that light (each pixel's weights over its
-    opacity, from each view's pairs drawn afresh, before any footprint is held); transport
-    weights are averaged tone-mapped, as the weight loss compares them, so that a splat on
-    an emitter's edge does not start at its radiance; a splat no view sees starts at the
-    mean weights."""
+def _start_palette(run: SplatRun, views: list, stack) -> None:
+    """Freeze the geometry and start the palette weights where the RGB stage ended: from
+    each splat's own colour for an additive ``stack`` (``_colour_start``), from the light
+    each splat sends to the training ``views``' weights otherwise (``_light_start``)."""
+    weights, residual = _colour_start(run.model, stack) if (
+        stack.basis == Basis.ADDITIVE) else (_light_start(run, views), None)
+    run.model.set_output(run.basis, weights, residual)
+
+
+def _colour_start(model, stack) -> tuple[torch.Tensor, torch.Tensor]:
+    """(S, K) weights and (S, B - 1, K) residual that give each splat the colour the RGB
+    stage gave it: the stack's weights of its view-independent colour (its per-colour
+    method's, mean value coordinates for a spatial one: ``weights.palette_weights``), and
+    its view-dependent spherical harmonics through the least-norm map of colours to weight
+    changes that sum to zero (the pseudo-inverse of [P^T; 1^T]), as the residual is."""
+    method, options = ((stack.method, stack.meta.get("method_options", {}))
+                       if per_colour(stack.method) else ("mvc", {}))
+    colours = (SH_C0 * model.colours + 0.5).clamp(0, 1).double().cpu().numpy()
+    weights = palette_weights(colours, stack.palette, stack.hull_faces, method,
+                              **(options if isinstance(options, dict) else {}))
+    palette = np.asarray(stack.palette, np.float64)
+    inverse = np.linalg.pinv(np.vstack([palette.T, np.ones(len(palette))]))[:, :3]  # (K, 3)
+    residual = model.colours_rest @ torch.as_tensor(inverse.T, dtype=model.colours_rest.dtype,
+                                                    device=model.means.device)
+    return torch.as_tensor(weights, dtype=torch.float32, device=model.means.device), residual
+
+
+def _light_start(run: SplatRun, views: list) -> torch.Tensor:
+    """(S, M) weights: each splat's mean of the training weights it sends light to, weighted
+    by that light (each pixel's weights over its opacity, from each view's pairs drawn
+    afresh, before any footprint is held); transport weights are averaged tone-mapped, as
+    the weight loss compares them, so that a splat on an emitter's edge does not start at
+    its radiance; a splat no view sees starts at the mean weights."""
     model = run.model
     channels = views[0].weights.shape[-1]
     transport = run.basis == Basis.TRANSPORT
@@ -291,7 +319,7 @@ def _start_palette(run: SplatRun, views: list) -> None:
     weights = torch.where(light[:, -1:] > 1e-6, weights, mean)
     if run.basis == Basis.ADDITIVE:
         weights = weights / weights.sum(1, keepdim=True).clamp(min=1e-6)
-    model.set_output(run.basis, weights.clamp(min=0))
+    return weights.clamp(min=0)
 
 
 def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:

@@ -65,16 +65,18 @@ class SplatModel(nn.Module):
         """(S, 3, 3) covariances and (S,) opacities."""
         return covariances(self.quats, torch.exp(self.scales)), torch.sigmoid(self.opacities)
 
-    def set_output(self, kind: str, weights: torch.Tensor) -> None:
+    def set_output(self, kind: str, weights: torch.Tensor,
+                   residual: torch.Tensor | None = None) -> None:
         """Freeze the geometry and replace the RGB colours by (S, M) palette ``weights``
-        (after their activation) and a zero residual."""
+        (after their activation) and their (S, B - 1, M) ``residual`` (zero by default)."""
         for name in GEOMETRY:
             getattr(self, name).requires_grad_(False)
         del self.colours, self.colours_rest
         self.kind = kind
         self.weights = nn.Parameter(INVERSE_ACTIVATIONS[kind](weights.clamp(min=1e-4)))
         self.residual = nn.Parameter(weights.new_zeros(len(weights), sh_terms(self.degree) - 1,
-                                                       weights.shape[1]))
+                                                       weights.shape[1])
+                                     if residual is None else residual.contiguous())
 
 
 @dataclass
