@@ -244,13 +244,12 @@ def test_a_splat_run_evaluates_renders_bakes_and_exports(splat_run, tmp_path, ca
     assert (tmp_path / "s.ply").stat().st_size > 0
 
 
-@pytest.mark.parametrize("scene, footprint_bytes", [("cornell", footprints.FOOTPRINT_BYTES),
-                                                    ("still_life", 0)])
-def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, request,
-                                              monkeypatch):
+@pytest.mark.parametrize("scene, budget", [("cornell", None), ("still_life", 0)])
+def test_a_splat_run_resumes_where_it_stopped(scene, budget, tmp_path, request, monkeypatch):
     """Transport weights, and additive ones whose palette stage recomputes its targets and
     draws its views afresh (no room for their footprints)."""
-    monkeypatch.setattr(footprints, "FOOTPRINT_BYTES", footprint_bytes)
+    if budget is not None:
+        monkeypatch.setattr(footprints, "footprint_budget", lambda device: budget)
     root = request.getfixturevalue(scene)
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "8", "--finetune-iters", "4",
              "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6"]
@@ -259,14 +258,14 @@ def test_a_splat_run_resumes_where_it_stopped(scene, footprint_bytes, tmp_path, 
     assert load_run(tmp_path / "a").record.iteration == 12
 
 
-@pytest.mark.parametrize("stop, footprint_bytes", [(5, None), (25, None), (25, 1)])
+@pytest.mark.parametrize("stop, budget", [(5, None), (25, None), (25, 1)])
 def test_a_splat_run_resumed_gives_the_uninterrupted_result(cornell, tmp_path, monkeypatch,
-                                                            stop, footprint_bytes):
+                                                            stop, budget):
     """Stopped in the RGB stage (densification's totals mid-gather), or in the palette stage
     (its window of footprints part way; one footprint at a time), then resumed: every
     tensor and every logged loss as the uninterrupted run's."""
-    if footprint_bytes is not None:
-        monkeypatch.setattr(footprints, "FOOTPRINT_BYTES", footprint_bytes)
+    if budget is not None:
+        monkeypatch.setattr(footprints, "footprint_budget", lambda device: budget)
         monkeypatch.setattr(footprints, "WINDOW_VISITS", 2)
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "20", "--finetune-iters", "10",
              "--splats-initial", "32", "--checkpoint-every", "5", "--splats-patch", "6",
@@ -293,16 +292,37 @@ def test_a_splat_run_resumed_gives_the_uninterrupted_result(cornell, tmp_path, m
         assert torch.equal(a, b)
 
 
+def test_the_palette_stage_keeps_the_colour_transforms_of_the_rgb_stage(still_life, tmp_path,
+                                                                      monkeypatch):
+    """The transforms are frozen with the geometry: every palette-stage checkpoint holds the
+    RGB stage's last ones."""
+    saved, save = [], backbone.save_checkpoint
+
+    def recorded(run, path, *args):
+        saved.append((run.kind, run.appearance.transforms().detach().clone()))
+        save(run, path, *args)
+
+    monkeypatch.setattr(backbone, "save_checkpoint", recorded)
+    flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "6", "--finetune-iters", "6",
+             "--splats-initial", "32", "--splats-patch", "6", "--checkpoint-every", "3"]
+    assert main(["train", str(still_life), "-o", str(tmp_path / "run"), *flags]) == 0
+    kinds = [kind for kind, _ in saved]
+    assert kinds[0] == RGB and kinds[-1] == Basis.ADDITIVE
+    last_rgb = [t for kind, t in saved if kind == RGB][-1]
+    assert not torch.equal(last_rgb, torch.eye(3, 4).expand_as(last_rgb))  # they moved
+    assert all(torch.equal(t, last_rgb) for kind, t in saved if kind != RGB)
+
+
 def test_the_palette_stage_moves_its_window_of_footprints_on(cornell, tmp_path, monkeypatch):
     """Footprints that do not all fit: the stage draws from the views whose footprints fit
     (one here) and, after ``WINDOW_VISITS`` steps a view, makes the next views' instead."""
-    monkeypatch.setattr(footprints, "FOOTPRINT_BYTES", 1)
+    monkeypatch.setattr(footprints, "footprint_budget", lambda device: 1)
     monkeypatch.setattr(footprints, "WINDOW_VISITS", 2)
     starts, made = [], footprints.make_footprints
 
-    def counted(run, views, start=0):
+    def counted(run, views, budget, start=0):
         starts.append(start)
-        return made(run, views, start)
+        return made(run, views, budget, start)
 
     monkeypatch.setattr(footprints, "make_footprints", counted)
     flags = [*SPLAT_FLAGS[:2], "--pretrain-iters", "4", "--finetune-iters", "6",
@@ -354,7 +374,7 @@ def test_the_palette_stage_draws_views_from_their_footprints(splat_run, at_once,
     device = run.model.means.device
     views = footprints.training_views(run, data, ids, np.zeros(
         (len(ids), camera.height, camera.width, channels)), device)
-    held = footprints.make_footprints(run, views)
+    held = footprints.make_footprints(run, views, 1 << 40)
     values = run.model.values(views[0].pose[:3, 3]).detach()
     covariance, opacity = run.model.gaussians()
     drawn, acc = draw(run.model.means, covariance, values, opacity, views[0].pose, camera,

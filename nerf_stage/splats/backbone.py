@@ -135,8 +135,8 @@ class SplatSteps:
     """The steps of the splats backbone (``loop.Steps``): one training view (a random patch
     of it in the RGB stage) a step; densification after each RGB step; at the palette
     stage's start the geometry frozen, the weights started where the RGB stage ended
-    (``_start_palette``) and the views' footprints made (``footprints.Window``); the targets
-    made exposure-free then and at every checkpoint."""
+    (``_start_palette``), the colour transforms frozen, the targets made exposure-free and
+    the views' footprints made (``_palette_targets``)."""
 
     def __init__(self, run: SplatRun, views: list, stack, pixels: int):
         config, device = run.config, run.device
@@ -165,7 +165,7 @@ class SplatSteps:
                              if isinstance(window, dict) else (0, 0))
             if not all(isinstance(v, int) and v >= 0 for v in (start, visits)):
                 raise InputError("the checkpoint's palette-stage window is not two counts")
-            self.window = Window.made(self.run, self.views, start % len(self.views), visits)
+            self._palette_targets(start % len(self.views), visits)
 
     @property
     def stage(self) -> str:
@@ -174,12 +174,19 @@ class SplatSteps:
     def before(self, it: int) -> None:
         run, config = self.run, self.run.config
         if it >= config.pretrain_iters and run.kind == RGB:
-            _exposure_free(run, self.stack, self.views)
             _start_palette(run, self.views, self.stack)
-            self.window = Window.made(run, self.views)
+            self._palette_targets()
             self.optimiser = _optimiser(run, self.extent)
-        elif run.kind != RGB and it % config.checkpoint_every == 0:
-            _exposure_free(run, self.stack, self.views)
+
+    def _palette_targets(self, start: int = 0, visits: int = 0) -> None:
+        """The palette stage's colour transforms frozen (on one view a step, Adam moved
+        every image's transform, and the training views drifted from the held-out ones:
+        docs/splats.md), the views' weights made exposure-free under them, and the window
+        of footprints from view ``start`` on, ``visits`` steps into it."""
+        if self.run.appearance is not None:
+            self.run.appearance.requires_grad_(False)
+        _exposure_free(self.run, self.stack, self.views)
+        self.window = Window.made(self.run, self.views, start, visits)
 
     def loss(self, it: int, progress: float) -> tuple[torch.Tensor, float]:
         run, generator = self.run, self.generator
@@ -250,10 +257,10 @@ def _as_recorded(run: SplatRun, rgb: torch.Tensor, view: TrainingView) -> torch.
 
 def _exposure_free(run: SplatRun, stack, views: list) -> None:
     """Give the palette stage's training ``views`` (in place) their weights exposure-free
-    under the current colour transforms where the run learns them
-    (``appearance.exposure_free_weights``): as the stage starts and at every checkpoint,
-    where a resumed run computes them too; a view at a time, so that one view's pixels are
-    computed and one view's weights are held twice at once."""
+    under the colour transforms where the run learns them
+    (``appearance.exposure_free_weights``): as the stage starts, and as a resumed run
+    continues it; a view at a time, so that one view's pixels are computed and one view's
+    weights are held twice at once."""
     if run.appearance is None:
         return
     for n, view in enumerate(views):
@@ -323,11 +330,12 @@ def _light_start(run: SplatRun, views: list) -> torch.Tensor:
 
 
 def _optimiser(run: SplatRun, extent: float) -> torch.optim.Adam:
-    """One Adam, a group a trained parameter, named by it (``strategy.edit_rows``)."""
+    """One Adam, a group a trained parameter, named by it (``strategy.edit_rows``); the
+    colour transforms only in the RGB stage (``SplatSteps._palette_targets``)."""
     rates = _rates(run.config.splats, extent)
     groups = [{"name": name, "params": [p], "lr": rates[name]}
               for name, p in run.model.named_parameters() if p.requires_grad]
-    if run.appearance is not None:
+    if run.appearance is not None and run.kind == RGB:
         groups.append({"name": "appearance", "params": list(run.appearance.parameters()),
                        "lr": rates["appearance"]})
     return torch.optim.Adam(groups, eps=1e-15, fused=True)

@@ -14,14 +14,17 @@ from tqdm import tqdm
 
 from ..data.cameras import Intrinsics
 from ..data.dataset import Dataset
+from ..train.run import free_memory
 from .rasterise import draw
 from .run import SplatRun, normalised_pose
 
-#: Bytes of frozen footprints the palette stage keeps (``footprints``). When the views'
-#: footprints do not all fit, the stage draws from a window of views whose footprints do,
-#: and moves the window on to the next views after ``WINDOW_VISITS`` steps a view in it:
-#: a view drawn afresh at every visit costs a footprint's making each time.
-FOOTPRINT_BYTES = 768 << 20
+#: The share of the memory free on the device as the palette stage starts that its frozen
+#: footprints may take (``footprint_budget``). When the views' footprints do not all fit,
+#: the stage draws from a window of views whose footprints do, and moves the window on to
+#: the next views after ``WINDOW_VISITS`` steps a view in it: a view drawn afresh at every
+#: visit costs a footprint's making each time (docs/splats.md).
+FOOTPRINT_SHARE = 0.5
+FOOTPRINT_BYTES = 256 << 20  # the budget's floor, where little memory is free
 WINDOW_VISITS = 8
 PAIRS_AT_ONCE = 1 << 20  # a view's pairs sorted (``_csr``) or multiplied (the start) at once
 
@@ -153,13 +156,19 @@ def _csr(rows: torch.Tensor, columns: torch.Tensor, values: torch.Tensor,
                                        sorted_columns.int(), sorted_values, shape)
 
 
-def make_footprints(run: SplatRun, views: list, start: int = 0) -> list:
+def footprint_budget(device: torch.device) -> int:
+    """Bytes of footprints the palette stage may hold on ``device``: ``FOOTPRINT_SHARE`` of
+    its free memory, at least ``FOOTPRINT_BYTES``."""
+    return int(max(FOOTPRINT_BYTES, min(FOOTPRINT_SHARE * free_memory(device), 1 << 60)))
+
+
+def make_footprints(run: SplatRun, views: list, budget: int, start: int = 0) -> list:
     """The footprints of ``views`` in their order from ``start`` on (around to the first),
-    while they fit in ``FOOTPRINT_BYTES`` (the next one taken to be as large as the largest
-    so far); None for the views past them."""
+    while they fit in ``budget`` bytes (the next one taken to be as large as the largest so
+    far); None for the views past them."""
     made, used, largest = [None] * len(views), 0, 0
     for n in tqdm(range(len(views)), desc="footprints", unit="view", leave=False):
-        if used >= FOOTPRINT_BYTES or used + largest > FOOTPRINT_BYTES:
+        if used >= budget or used + largest > budget:
             break
         index = (start + n) % len(views)
         made[index] = footprint(run, views[index])
@@ -171,16 +180,19 @@ def make_footprints(run: SplatRun, views: list, start: int = 0) -> list:
 @dataclass
 class Window:
     """The palette stage's footprints (``make_footprints``; None for the views past the
-    window), the view the window starts at and the steps drawn from it so far: the state a
-    resumed run continues from (``state``)."""
+    window) within ``budget`` bytes, the view the window starts at and the steps drawn from
+    it so far: the state a resumed run continues from (``state``)."""
 
     footprints: list
+    budget: int = 0
     start: int = 0
     visits: int = 0
 
     @classmethod
     def made(cls, run: SplatRun, views: list, start: int = 0, visits: int = 0) -> Window:
-        return cls(make_footprints(run, views, start), start, visits)
+        """The window from view ``start`` on, within the budget the device has now."""
+        budget = footprint_budget(run.device)
+        return cls(make_footprints(run, views, budget, start), budget, start, visits)
 
     def pick(self, run: SplatRun, views: list,
              generator: torch.Generator) -> tuple[int, Footprint | None]:
@@ -190,7 +202,8 @@ class Window:
         held = self._held()
         if held and len(held) < len(views) and self.visits >= WINDOW_VISITS * len(held):
             self.start, self.footprints = (self.start + len(held)) % len(views), []
-            self.footprints, self.visits = make_footprints(run, views, self.start), 0
+            self.footprints = make_footprints(run, views, self.budget, self.start)
+            self.visits = 0
             held = self._held()
         window = held or range(len(views))
         index = window[int(torch.randint(len(window), (1,), generator=generator))]

@@ -38,6 +38,23 @@ def default_device() -> torch.device:
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
+def free_memory(device: torch.device) -> float:
+    """Bytes ``device`` can give this process now: a GPU's free memory; on a CPU the
+    system's ``MemAvailable`` (free pages where there is no /proc; unbounded where neither
+    is known)."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[0]
+    try:
+        with open("/proc/meminfo") as info:
+            fields = dict(line.split(":", 1) for line in info)
+        return int(fields["MemAvailable"].split()[0]) * 1024
+    except (OSError, KeyError, ValueError):
+        try:
+            return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, ValueError):
+            return float("inf")
+
+
 @dataclass
 class RunRecord:
     """Where a run came from and how far it got (saved in the checkpoint).

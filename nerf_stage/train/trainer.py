@@ -47,6 +47,7 @@ from .run import (
     RunRecord,
     check_rundir,
     default_device,
+    free_memory,
     restore,
 )
 from .schedule import stage_progress
@@ -359,24 +360,8 @@ def _check_fits(weights: np.ndarray, supersampling: int, device: torch.device) -
     directions), colour, weights, alpha and image index, float32 (``_ray_bank``)."""
     pixels = int(np.prod(weights.shape[:3]))
     needed = pixels * 4 * (6 * supersampling ** 2 + 3 + weights.shape[-1] + 1 + 2)
-    free = torch.cuda.mem_get_info(device)[0] if device.type == "cuda" else _free_memory()
+    free = free_memory(device)
     if needed > free:
         raise InputError(f"the rays of {pixels} training pixels need {needed / 2**30:.1f} GB, "
                          f"more than the {free / 2**30:.1f} GB free on {device}: train on "
                          "smaller images (downscale them) or fewer of them")
-
-
-def _free_memory() -> float:
-    """Bytes of memory the system can give this process now (``MemAvailable``; free pages
-    where there is no /proc; unbounded where neither is known)."""
-    try:
-        with open("/proc/meminfo") as info:
-            fields = dict(line.split(":", 1) for line in info)
-        return int(fields["MemAvailable"].split()[0]) * 1024
-    except (OSError, KeyError, ValueError):
-        try:
-            return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (OSError, ValueError):
-            return float("inf")
-
-
