@@ -89,6 +89,16 @@ def palette_weights(colours: np.ndarray, palette: np.ndarray, hull_faces: np.nda
     return ordered
 
 
+def stack_colour_weights(stack, colours: np.ndarray) -> np.ndarray:
+    """(D, K) weights of (D, 3) colours as the ``WeightStack`` ``stack`` would hold them for
+    pixels of those colours: its per-colour method with its own options
+    (``palette_weights``); mean value coordinates for a stack of a spatial method."""
+    method, options = ((stack.method, stack.meta.get("method_options", {}))
+                       if per_colour(stack.method) else ("mvc", {}))
+    return palette_weights(colours, stack.palette, stack.hull_faces, method,
+                           **(options if isinstance(options, dict) else {}))
+
+
 def check_weight_method(method: str, options: dict, stream: bool = False):
     """The method ``method``, after checking that it exists, that every option is one of its
     own and, for a ``stream`` of frames, that it is not spatial.

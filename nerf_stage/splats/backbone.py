@@ -32,7 +32,7 @@ import torch
 
 from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
-from palette_core.weights import palette_weights, per_colour
+from palette_core.weights import stack_colour_weights
 
 from ..backbone_settings import SplatConfig
 from ..data.dataset import Dataset
@@ -284,15 +284,12 @@ def _start_palette(run: SplatRun, views: list, stack) -> None:
 
 def _colour_start(model, stack) -> tuple[torch.Tensor, torch.Tensor]:
     """(S, K) weights and (S, B - 1, K) residual that give each splat the colour the RGB
-    stage gave it: the stack's weights of its view-independent colour (its per-colour
-    method's, mean value coordinates for a spatial one: ``weights.palette_weights``), and
-    its view-dependent spherical harmonics through the least-norm map of colours to weight
-    changes that sum to zero (the pseudo-inverse of [P^T; 1^T]), as the residual is."""
-    method, options = ((stack.method, stack.meta.get("method_options", {}))
-                       if per_colour(stack.method) else ("mvc", {}))
+    stage gave it: the stack's weights of its view-independent colour
+    (``weights.stack_colour_weights``), and its view-dependent spherical harmonics through
+    the least-norm map of colours to weight changes that sum to zero (the pseudo-inverse of
+    [P^T; 1^T]), as the residual is."""
     colours = (SH_C0 * model.colours + 0.5).clamp(0, 1).double().cpu().numpy()
-    weights = palette_weights(colours, stack.palette, stack.hull_faces, method,
-                              **(options if isinstance(options, dict) else {}))
+    weights = stack_colour_weights(stack, colours)
     palette = np.asarray(stack.palette, np.float64)
     inverse = np.linalg.pinv(np.vstack([palette.T, np.ones(len(palette))]))[:, :3]  # (K, 3)
     residual = model.colours_rest @ torch.as_tensor(inverse.T, dtype=model.colours_rest.dtype,

@@ -26,7 +26,7 @@ from torch import nn
 
 from palette_core import Basis
 from palette_core.stack import WeightStack
-from palette_core.weights import palette_weights, per_colour
+from palette_core.weights import per_colour, stack_colour_weights
 
 
 class Appearance(nn.Module):
@@ -71,8 +71,6 @@ def exposure_free_weights(appearance: Appearance, stack: WeightStack, rgb: torch
     computed again for other colours (the transport basis, spatial or simulated weights)."""
     if stack.basis != Basis.ADDITIVE or not per_colour(stack.method):
         return None
-    options = stack.meta.get("method_options", {})
     colours = appearance.undo(rgb, image).clamp(0, 1).double().cpu().numpy()
-    weights = palette_weights(colours, stack.palette, stack.hull_faces, stack.method,
-                              **(options if isinstance(options, dict) else {}))
+    weights = stack_colour_weights(stack, colours)
     return torch.as_tensor(weights.astype(np.float32), device=rgb.device) * alpha[:, None]
