@@ -56,7 +56,7 @@ demo: $(BIN)/.installed
 test: $(BIN)/.installed
 	@command -v chromium >/dev/null && command -v chromedriver >/dev/null || \
 		echo "chromium or chromedriver missing: the browser tests will be skipped"
-	$(BIN)/python -m pytest -q -rs
+	$(BIN)/python -m pytest -q -rs --durations=30
 
 bench: $(BIN)/.installed
 	$(BIN)/python benchmarks/bench_decompose.py

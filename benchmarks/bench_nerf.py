@@ -198,7 +198,8 @@ def main() -> None:
     device = "cuda" if torch.cuda.is_available() else "cpu"
     print(f"device: {device} ({torch.cuda.get_device_name() if device == 'cuda' else 'CPU'}, "
           f"{torch.get_num_threads()} threads); P = {p}, F = {f}, lr decay {args.lr_decay}")
-    base = TrainConfig(pretrain_iters=p, finetune_iters=f, lr_decay=args.lr_decay)
+    base = TrainConfig(backbone="grid", pretrain_iters=p, finetune_iters=f,
+                       lr_decay=args.lr_decay)
     results = {scene: scene_runs(scene, base, args.out) for scene in args.scenes}
     made = paper_tables(results, base)
     made += [baked_table(scene, runs, args.out / "runs" / scene / "two-stage per-sample",

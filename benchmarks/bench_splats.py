@@ -91,7 +91,7 @@ def main() -> None:
     args = parser.parse_args()
     results, rows, pictures = {}, [], []
     for scene in args.scenes:
-        dataset, run, _ = scene_run(scene, args.out, TrainConfig())
+        dataset, run, _ = scene_run(scene, args.out, TrainConfig(backbone="grid"))
         start = time.perf_counter()
         splats = bake_run(args.out / f"{scene}-run", args.max_splats, args.refine_steps,
                           run=run)

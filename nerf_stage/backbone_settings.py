@@ -239,6 +239,8 @@ class SplatConfig:
 #: The settings of each backbone, by name (``TrainConfig``'s sections).
 SETTINGS = {"grid": GridConfig, "mlp": MLPConfig, "hash": HashConfig, "splats": SplatConfig}
 
-#: The backbones' names, as ``TrainConfig.backbone`` takes them.
-Backbone = StrEnum("Backbone", {name.upper(): name for name in SETTINGS})
-Backbone.__doc__ = "Backbone names (``SETTINGS``); each has a settings section of its name."
+#: The backbones' names, as ``TrainConfig.backbone`` takes them, and ``auto``: the one
+#: ``trainer.choose_backbone`` chooses for the scene as training starts.
+Backbone = StrEnum("Backbone", {"AUTO": "auto", **{name.upper(): name for name in SETTINGS}})
+Backbone.__doc__ = ("Backbone names (``SETTINGS``), each with a settings section of its name, "
+                    "and ``auto``.")

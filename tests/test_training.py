@@ -256,7 +256,7 @@ def test_minutes_plan_the_iterations_and_the_clock_ends_the_run(cornell, tmp_pat
     the plan, which ``--resume`` with the config asked for accepts."""
     from nerf_stage.train import budget
 
-    config = tiny_config(minutes=0.02)
+    config = tiny_config(backbone="grid", minutes=0.02)
     run = trained(cornell, config, tmp_path / "run")
     assert not run.config.fill_minutes and run.config.total_iters > 10 * budget.PROBE_ITERS
     assert run.record.log[-1]["seconds"] >= 60 * config.minutes
@@ -339,6 +339,38 @@ def test_a_backbones_table_entry_gives_its_config_section_and_flags():
         assert isinstance(getattr(TrainConfig(), name), spec.settings)
         assert {f"{name}_{f.name}" for f in fields(spec.settings)} <= flags
         assert set(TrainConfig(backbone=name).to_dict()) & set(BACKBONES) == {name}
+
+
+def test_the_auto_backbone_is_the_splats_for_views_finer_than_the_grid(monkeypatch):
+    """``--backbone auto`` chooses the splats for views at least twice as many pixels across
+    as the grid has voxels, with points to start from, and the grid otherwise."""
+    from types import SimpleNamespace
+
+    from nerf_stage.train.trainer import choose_backbone
+
+    def chosen(width, points=None, **changes):
+        views = SimpleNamespace(images=np.zeros((2, width // 2, width, 3)), points=points)
+        return choose_backbone(TrainConfig(**changes), views).backbone
+
+    assert TrainConfig().backbone == "auto"
+    assert chosen(191) == "grid" and chosen(192) == "splats"  # 96^3 voxels by default
+    assert chosen(50, grid=TINY["grid"]) == "splats"  # 12 voxels across
+    assert chosen(192, strategy="traditional") == "grid"
+    assert chosen(100, backbone="hash") == "hash"
+    monkeypatch.setattr(trainer_module.importlib.util, "find_spec", lambda name: None)
+    assert chosen(192) == "grid"  # no pycolmap: nothing to start the splats from
+    assert chosen(192, points=object()) == "splats"
+    with pytest.raises(InputError, match="auto"):
+        _ = TrainConfig().backbone_config
+
+
+def test_a_run_of_the_auto_backbone_saves_the_one_chosen(cornell, tmp_path):
+    run = trained(cornell, tiny_config(), tmp_path / "run")
+    assert run.config.backbone == "grid"  # 16 x 16 views
+    assert TrainConfig.load(tmp_path / "run" / "config.json").backbone == "grid"
+    assert load_run(tmp_path / "run").config.backbone == "grid"
+    resumed = trained(cornell, tiny_config(), tmp_path / "run", resume=True)  # auto again
+    assert resumed.record.log == run.record.log
 
 
 def test_a_config_saved_before_a_field_existed_reads_as_that_run_trained():

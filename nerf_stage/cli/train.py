@@ -45,7 +45,7 @@ def run(args) -> int:
     config = config_from_args(TrainConfig, args)
     done = train_capture(args.data, config, args.weights, args.output, args.frames_outside,
                          args.downscale, args.resume, args.force)
-    dataset, log = done.dataset, done.run.record.log
+    dataset, log, config = done.dataset, done.run.record.log, done.run.config
     print(f"dataset: {dataset.root} ({dataset.layout} layout, {len(dataset.names)} frames, "
           f"{len(dataset.indices('train'))} for training)")
     print(f"weights: {done.weights}")

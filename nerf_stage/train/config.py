@@ -58,10 +58,12 @@ class TrainConfig:
     """How to train one weight NeRF (defaults suit the ``grid`` backbone on a CPU), with a
     section of settings per backbone (``backbone_settings.SETTINGS``)."""
 
-    backbone: Backbone = Backbone.GRID
+    backbone: Backbone = Backbone.AUTO
     """``grid`` (dense voxel grids, fast on CPUs), ``hash`` (a multi-resolution hash encoding:
-    detail at a photo's resolution), ``mlp`` (the paper's vanilla NeRF) or ``splats`` (3D
-    Gaussians, the model the studio and the PLY show as trained)."""
+    detail at a photo's resolution), ``mlp`` (the paper's vanilla NeRF), ``splats`` (3D
+    Gaussians, the model the studio and the PLY show as trained) or ``auto``: the splats for
+    views finer than the grid resolves, the grid otherwise (``trainer.choose_backbone``,
+    docs/decisions/0023-auto-backbone.md); a run's config.json names the one chosen."""
     strategy: Strategy = Strategy.TWO_STAGE
     """``two-stage`` (RGB pretrain, then weights), ``traditional`` (weights from scratch),
     or ``rgb`` (an RGB NeRF only, the baseline)."""
@@ -190,6 +192,9 @@ class TrainConfig:
     @property
     def backbone_config(self):
         """The nested settings of the chosen backbone (``backbone_settings.SETTINGS``)."""
+        if self.backbone == Backbone.AUTO:
+            raise InputError("backbone auto names no settings until the scene chooses one "
+                             "(trainer.choose_backbone)", "backbone")
         return getattr(self, self.backbone)
 
     def to_dict(self) -> dict:

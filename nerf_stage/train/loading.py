@@ -34,7 +34,9 @@ def load_run(rundir: str | os.PathLike, device: torch.device | None = None) -> R
     state = read_checkpoint(path)
     try:
         config = TrainConfig.from_dict(state["config"], str(path))
-        spec = BACKBONES[config.backbone]
+        spec = BACKBONES.get(config.backbone)
+        if spec is None:
+            raise InputError(f"{path}: its config names no backbone ({config.backbone})")
         if not spec.is_field:
             return spec.module().load_run(state, str(path), device)
         if "occupancy" not in state:  # a field run's own key

@@ -12,6 +12,7 @@ to one) are multiplied by the frame's alpha; transport stacks from
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import resource
 import tempfile
@@ -28,6 +29,7 @@ from palette_core.basis import Basis, n_terms
 from palette_core.errors import InputError
 from palette_core.stack import WeightStack, default_stack, read_stack
 
+from ..backbone_settings import Backbone
 from ..backbones import BACKBONES
 from ..data.dataset import Dataset, join_weights, load_dataset
 from ..fields import RGB, make_field
@@ -52,6 +54,9 @@ from .run import (
 )
 from .schedule import stage_progress
 
+#: ``--backbone auto`` (``choose_backbone``) chooses the splats for views at least this many
+#: times as many pixels across as the grid has voxels.
+SPLATS_FROM_GRID_RESOLUTION = 2
 #: ``--space auto`` on images with transparent pixels (``choose_scene_box``): iterations of each
 #: space's probe, pixels it is scored on, and by how many dB the unbounded probe must beat
 #: the box's to be chosen.
@@ -79,8 +84,9 @@ def train_capture(data: str | os.PathLike, config: TrainConfig,
     stack (``weights``, default ``data``'s ``DEFAULT_STACK``) trained with ``config`` into
     the run folder ``output`` (default ``DATA-BACKBONE`` beside ``data``; ``train``)."""
     data = Path(data).resolve()
-    rundir = Path(output or data.with_name(f"{data.name}-{config.backbone}"))
     dataset = load_dataset(data, config.background, frames_outside, downscale)
+    config = choose_backbone(config, dataset)
+    rundir = Path(output or data.with_name(f"{data.name}-{config.backbone}"))
     weights = (Path(weights) if weights else default_stack(data)).resolve()
     run = train(config, dataset, read_stack(weights), rundir, resume=resume, force=force,
                 weights_path=str(weights))
@@ -133,6 +139,7 @@ def _train(config: TrainConfig, dataset: Dataset, stack: WeightStack, rundir: st
            device: torch.device | None) -> Run:
     device = device or default_device()
     rundir = Path(rundir)
+    config = choose_backbone(config, dataset)
     config, weights, state = training_targets(config, dataset, stack, rundir, resume, force)
     train_ids = dataset.indices("train")
     if (state is None and dataset.points is None
@@ -243,6 +250,24 @@ def peak_memory(device: torch.device) -> str:
     if device.type == "cuda":
         text += f", {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GB on {device}"
     return text
+
+
+def choose_backbone(config: TrainConfig, dataset: Dataset) -> TrainConfig:
+    """``config`` with ``--backbone auto`` made a backbone for ``dataset``: ``splats`` where
+    its views are at least ``SPLATS_FROM_GRID_RESOLUTION`` times as many pixels across as
+    the grid has voxels (detail the grid blurs) and the splats have points to start from
+    (the capture's own, or pycolmap to triangulate them: ``_with_points``), ``grid``
+    otherwise and for the ``traditional`` strategy, which the splats do not train
+    (docs/decisions/0023-auto-backbone.md)."""
+    if config.backbone != Backbone.AUTO:
+        return config
+    across = max(dataset.images.shape[1:3])
+    voxels_across = round(config.grid.voxels ** (1 / 3))
+    points = dataset.points is not None or (config.splats.triangulate
+                                            and importlib.util.find_spec("pycolmap"))
+    splats = (config.strategy != Strategy.TRADITIONAL and points
+              and across >= SPLATS_FROM_GRID_RESOLUTION * voxels_across)
+    return replace(config, backbone=Backbone.SPLATS if splats else Backbone.GRID)
 
 
 def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, train_ids,
