@@ -1,9 +1,9 @@
-"""Train a weight NeRF on a dataset and its weight stack, whatever its backbone: the run
-folder checked, the training weights joined, the scene box chosen (the same for every
-backbone), then the backbone's steps run by the one loop (``loop.train_loop``; the field
-backbones' are ``field_steps.FieldSteps``). The run folder (``run.py``) is checkpointed as
-training goes; training resumes from the checkpoint and then gives the same result as an
-uninterrupted run.
+"""Train a weight NeRF on a dataset and its weight stack, whatever its backbone: the
+backbone chosen for ``auto``, the run folder checked, the training weights joined, the
+scene box chosen (the same for every backbone), then the backbone's steps run by the one
+loop (``loop.train_loop``; the field backbones' are ``field_steps.FieldSteps``). The run
+folder (``run.py``) is checkpointed as training goes; training resumes from the checkpoint
+and then gives the same result as an uninterrupted run.
 
 Weight targets are premultiplied by alpha: additive stacks (straight, summing
 to one) are multiplied by the frame's alpha; transport stacks from
