@@ -347,7 +347,7 @@ def test_valid_originals_are_read(originals):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-@settings(max_examples=25, deadline=None, derandomize=True,
+@settings(max_examples=15, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(mutations=MUTATIONS)
 def test_mutated_files_meet_the_contract(originals, tmp_path_factory, kind, mutations):
