@@ -26,6 +26,8 @@ a picture a run (``OUT/SCENE-RUN.png``: truth | render | error x 4) and, with
     python benchmarks/bench_paper.py ROOT [--scenes lego flower orchids]
         [--backbones grid splats] [--rgb-backbone splats] [--runs SCENE:RUN ...]
         [--minutes 20] [--curve-every 2000]
+
+A run named ``grid@ndc`` trains the grid in NDC space (``--space ndc``).
 """
 
 from __future__ import annotations
@@ -144,8 +146,9 @@ def main() -> None:
     parser.add_argument("--lego-every", type=int, default=8)
     parser.add_argument("--llff-downscale", type=int, default=8)
     parser.add_argument("--runs", nargs="+", metavar="SCENE:RUN",
-                        help="these runs only (RUN: a backbone, or BACKBONE-rgb), instead of "
-                             "every scene with every backbone")
+                        help="these runs only (RUN: a backbone, or BACKBONE-rgb, either "
+                             "with @SPACE for a --space other than auto), instead of every "
+                             "scene with every backbone")
     parser.add_argument("--curve-every", type=int, default=2000,
                         help="iterations between the checkpoints scored for the curves (0: "
                              "none)")
@@ -161,9 +164,10 @@ def main() -> None:
         data_dir = prepared(args.root, scene, args.out / scene, args)
         results.setdefault(scene, {})
         for name in [name for other, name in runs if other == scene]:
-            backbone, _, rgb = name.partition("-")
-            strategy = "rgb" if rgb else "two-stage"
-            config = TrainConfig(backbone=backbone, strategy=strategy, minutes=args.minutes,
+            kind, _, space = name.partition("@")
+            backbone, _, rgb = kind.partition("-")
+            config = TrainConfig(backbone=backbone, strategy="rgb" if rgb else "two-stage",
+                                 space=space or "auto", minutes=args.minutes,
                                  checkpoint_every=args.curve_every or 10**6)
             result = scored(data_dir, args.out / f"{scene}-{name}", config,
                             bool(args.curve_every))

@@ -4,6 +4,7 @@ import struct
 import zlib
 
 import numpy as np
+from PIL import Image
 
 from palette_core.stack import WeightStack, write_stack
 
@@ -58,3 +59,23 @@ def tiny_stack(path, rng, n=3):
     weights = [rng.dirichlet(np.ones(4), size=(6 + i, 8)).astype(np.float32) for i in range(n)]
     write_stack(WeightStack(PALETTE, weights, [f"p{i}.png" for i in range(n)], "mvc"), path)
     return path
+
+
+def llff_capture(folder, rng, n=10, folder_name="images_2"):
+    """An LLFF capture of ``n`` forward-facing 8 x 6 photos in ``folder_name``, whose
+    ``poses_bounds.npy`` describes full-size 16 x 12 photos; the true OpenGL poses."""
+    from nerf_stage.data.cameras import look_at
+
+    poses = np.array([look_at([0.3 * np.cos(a), 0.2 * np.sin(a), 4.0], [0.0, 0.0, 0.0])
+                      for a in np.linspace(0, 2 * np.pi, n, endpoint=False)])
+    rows = []
+    for pose in poses:
+        llff = np.stack([-pose[:3, 1], pose[:3, 0], pose[:3, 2], pose[:3, 3],
+                         [12.0, 16.0, 20.0]], 1)  # x down, y right, z back; then h, w, f
+        rows.append(np.concatenate([llff.ravel(), [2.0 + rng.uniform(), 9.0]]))
+    np.save(folder / "poses_bounds.npy", np.array(rows))
+    (folder / folder_name).mkdir()
+    for i in range(n):
+        Image.fromarray(rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)).save(
+            folder / folder_name / f"IMG_{i:04d}.png")
+    return poses, np.array(rows)[:, 15:]

@@ -12,7 +12,7 @@ from nerf_stage.data.dataset import join_weights, load_dataset
 from palette_core import InputError, WeightStack, read_stack
 from palette_core.basis import weights_to_rgb
 
-from .helpers import expect_error, png_header_only
+from .helpers import expect_error, llff_capture, png_header_only
 
 POSE = [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]
 
@@ -255,28 +255,8 @@ def test_bad_downscale_is_refused(still_life, factor):
         load_dataset(still_life, downscale=factor)
 
 
-def _llff_capture(folder, rng, n=10, folder_name="images_2"):
-    """An LLFF capture of ``n`` forward-facing 8 x 6 photos in ``folder_name``, whose
-    ``poses_bounds.npy`` describes full-size 16 x 12 photos; the true OpenGL poses."""
-    from nerf_stage.data.cameras import look_at
-
-    poses = np.array([look_at([0.3 * np.cos(a), 0.2 * np.sin(a), 4.0], [0.0, 0.0, 0.0])
-                      for a in np.linspace(0, 2 * np.pi, n, endpoint=False)])
-    rows = []
-    for pose in poses:
-        llff = np.stack([-pose[:3, 1], pose[:3, 0], pose[:3, 2], pose[:3, 3],
-                         [12.0, 16.0, 20.0]], 1)  # x down, y right, z back; then h, w, f
-        rows.append(np.concatenate([llff.ravel(), [2.0 + rng.uniform(), 9.0]]))
-    np.save(folder / "poses_bounds.npy", np.array(rows))
-    (folder / folder_name).mkdir()
-    for i in range(n):
-        Image.fromarray(rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)).save(
-            folder / folder_name / f"IMG_{i:04d}.png")
-    return poses, np.array(rows)[:, 15:]
-
-
 def test_an_llff_capture_is_read_with_its_split_bounds_and_poses(tmp_path, rng):
-    poses, bounds = _llff_capture(tmp_path, rng)
+    poses, bounds = llff_capture(tmp_path, rng)
     dataset = load_dataset(tmp_path)
     assert dataset.layout == "llff" and dataset.names[0] == "images_2/IMG_0000.png"
     assert [i for i, s in enumerate(dataset.splits) if s == "test"] == [0, 8]  # llffhold
@@ -302,7 +282,7 @@ def test_an_llff_capture_is_read_with_its_split_bounds_and_poses(tmp_path, rng):
     (lambda t: t[:3], "3 rows for the 10 photos"),
 ])
 def test_a_poses_bounds_file_that_lies_is_one_line(change, message, tmp_path, rng, capsys):
-    _llff_capture(tmp_path, rng)
+    llff_capture(tmp_path, rng)
     np.save(tmp_path / "poses_bounds.npy", change(np.load(tmp_path / "poses_bounds.npy")))
     assert main(["train", str(tmp_path), "-o", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err

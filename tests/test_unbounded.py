@@ -13,6 +13,7 @@ from nerf_stage.render.contraction import FAR, contract, ray_interval, ray_point
 from nerf_stage.render.march import march_rays, scale_near_gradients  # noqa: E402
 from nerf_stage.render.occupancy import OccupancyGrid  # noqa: E402
 from nerf_stage.render.scene_box import CAMERA_REACH, scene_box  # noqa: E402
+from nerf_stage.splats.baking import bake_run  # noqa: E402
 from nerf_stage.train.loading import load_run  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
@@ -126,6 +127,7 @@ def test_an_unbounded_run_trains_saves_and_renders(still_life, tmp_path):
     values, opacity = loaded.render(data.poses[data.indices("test")][:1], progress=False)
     assert np.isfinite(values).all() and np.all((opacity >= 0) & (opacity <= 1 + 1e-6))
     assert np.allclose(values.sum(-1), opacity, atol=1e-4)  # additive weights sum to opacity
+    assert len(bake_run(tmp_path / "run", refine_steps=1, progress=False).centres)
 
 
 def test_distortion_loss_is_the_pairwise_sum_and_prefers_compact_rays(rng):

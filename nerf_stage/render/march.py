@@ -134,7 +134,12 @@ class Samples:
 def sample_positions(samples: Samples, occupancy: OccupancyGrid, origins: torch.Tensor,
                      directions: torch.Tensor) -> torch.Tensor:
     """(P, 3) where ``samples`` of rays ``origins``, ``directions`` (R, 3) lie in the normalised
-    box coordinates, uncontracted (an unbounded scene's samples beyond the box are far away)."""
+    box coordinates, uncontracted (an unbounded scene's samples beyond the box are far away)
+    and out of NDC."""
+    if occupancy.ndc is not None:
+        origins, directions = occupancy.ndc.rays(origins, directions)
+        return occupancy.ndc.to_box(origins[samples.ray]
+                                    + samples.t[:, None] * directions[samples.ray])
     _, _, bend = ray_interval(occupancy, origins, directions)
     t = samples.t
     if bend is not None:
@@ -167,7 +172,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     they were; samples in empty cells skip the field. ``near_gradient`` scales the
     gradients of samples nearer than it to the camera (``scale_near_gradients``; the
     parameter is the distance up to one box half size, so any ``near_gradient`` <= 1
-    works in unbounded scenes too). Without gradients (rendering),
+    works in unbounded scenes too). In NDC space (``occupancy.ndc``) the rays are mapped into
+    the NDC cube first and marched there as in a box. Without gradients (rendering),
     rays are marched ``SEGMENT`` samples at a time, a ray whose transmittance has
     fallen below ``TERMINATION`` is not marched further (early ray termination), and
     stepped rays skip empty space again after each segment (past a floater to the
@@ -182,6 +188,8 @@ def march_rays(field, occupancy: OccupancyGrid, origins: torch.Tensor, direction
     origins, directions : (R, 3)
         Normalised coordinates; unit directions.
     """
+    if occupancy.ndc is not None:
+        origins, directions = occupancy.ndc.rays(origins, directions)
     near, far, bend, n_samples, deltas = _spacing(occupancy, origins, directions, sampling)
     jitter = (torch.full_like(near[:, None], 0.5) if generator is None else
               torch.rand(len(near), 1, generator=generator, device=near.device))

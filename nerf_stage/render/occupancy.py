@@ -18,6 +18,7 @@ from torch import nn
 
 from ..data.cameras import Intrinsics
 from .contraction import ray_points
+from .ndc import NDCFrame
 from .scene_box import SceneBox, visual_hull
 
 MAX_SKIPS = 16  # sphere-tracing steps across empty space before a ray is marched
@@ -34,12 +35,16 @@ class OccupancyGrid(nn.Module):
     cell while the density is still low everywhere. The grids are buffers:
     ``hull``, ``occupied`` and ``density`` are saved in ``state_dict``; ``extent``,
     ``resolution`` and the ``cell_*`` constants follow from the config and are not.
-    A ``contracted`` grid covers an unbounded scene's contracted space (``contraction``).
+    A ``contracted`` grid covers an unbounded scene's contracted space (``contraction``);
+    with an ``ndc`` frame, the NDC cube of a forward-facing scene (``ndc``), where rays are
+    marched as in a box once they are mapped into it.
     """
 
-    def __init__(self, extent: torch.Tensor, cells: int, contracted: bool = False):
+    def __init__(self, extent: torch.Tensor, cells: int, contracted: bool = False,
+                 ndc: NDCFrame | None = None):
         super().__init__()
         self.contracted = contracted
+        self.ndc = ndc
         per_unit = (cells / float(torch.prod(2 * extent))) ** (1 / 3)
         resolution = torch.clamp(torch.round(2 * extent * per_unit), 1).long()
         shape = tuple(resolution.tolist())
@@ -59,7 +64,8 @@ class OccupancyGrid(nn.Module):
     @classmethod
     def over(cls, box: SceneBox, cells: int) -> OccupancyGrid:
         """A grid of about ``cells`` cells over the space of ``box`` (its ``field_extent``)."""
-        return cls(torch.as_tensor(box.field_extent, dtype=torch.float32), cells, box.unbounded)
+        return cls(torch.as_tensor(box.field_extent, dtype=torch.float32), cells, box.unbounded,
+                   box.ndc)
 
     def carve(self, box: SceneBox, poses: np.ndarray, intrinsics: list[Intrinsics],
               alpha: np.ndarray) -> None:

@@ -20,6 +20,7 @@ from palette_core.errors import InputError
 
 from ..data.cameras import Intrinsics, camera_rays, project
 from . import contraction
+from .ndc import NDCFrame, frame_from_dict, reference_frame
 
 CARVE_ALPHA = 0.01  # a pixel below this alpha (after dilation) shows empty space
 OPAQUE_ALPHA = 1 - 0.5 / 255  # images whose pixels are all this opaque show no background
@@ -43,12 +44,16 @@ class SceneBox:
     sky : bool
         Rays of an unbounded scene end in an opaque sky at infinity (every training pixel is
         opaque: ``rendering.march_rays``); else what they leave shows the background.
+    ndc : NDCFrame or None
+        A forward-facing scene in NDC space (``ndc``): fields and the occupancy grid cover
+        the reference camera's frustum mapped onto [-1, 1]^3; the box only normalises.
     """
 
     centre: np.ndarray
     half: np.ndarray
     unbounded: bool = False
     sky: bool = False
+    ndc: NDCFrame | None = None
 
     @property
     def scale(self) -> float:
@@ -62,12 +67,15 @@ class SceneBox:
     @property
     def field_extent(self) -> np.ndarray:
         """(3,) half sizes of the space fields and the occupancy grid cover: the normalised
-        box, or the contracted space around it."""
+        box, the contracted space around it, or the NDC cube."""
+        if self.ndc is not None:
+            return np.ones(3)
         return np.full(3, contraction.EXTENT) if self.unbounded else self.extent
 
     def to_dict(self) -> dict:
         return {"centre": self.centre.tolist(), "half": self.half.tolist(),
-                "unbounded": self.unbounded, "sky": self.sky}
+                "unbounded": self.unbounded, "sky": self.sky,
+                "ndc": None if self.ndc is None else self.ndc.to_dict()}
 
 
 def box_from_dict(data, source: str) -> SceneBox:
@@ -87,12 +95,14 @@ def box_from_dict(data, source: str) -> SceneBox:
             or not np.isfinite(box.centre).all()
             or not (np.isfinite(box.half) & (box.half > 0)).all()):
         raise InputError(f"{source}: the scene box must be finite with positive extent")
+    if data.get("ndc") is not None:
+        box.ndc = frame_from_dict(data["ndc"], source)
     return box
 
 
 def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray,
-              space: str = "auto", resolution: int = 64, depth: float | None = None
-              ) -> SceneBox:
+              space: str = "auto", resolution: int = 64, depth: float | None = None,
+              nearest: float | None = None) -> SceneBox:
     """A box around what the cameras (``poses``, one ``intrinsics`` each) see.
 
     Starts from the cube around the point nearest to all optical axes, with half
@@ -107,12 +117,15 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
     ``box`` ends the scene there and, when the images have transparent pixels, shrinks the
     box to the visual hull carved from them; ``auto`` is ``unbounded`` when every pixel is
     opaque (no view shows where the scene ends), else ``box`` (training may still probe
-    both: ``trainer.choose_scene_box``).
+    both: ``trainer.choose_scene_box``); ``ndc`` keeps the cube to normalise positions and
+    maps the cameras' frustum, from a near plane at ``ndc.NEAR_SHARE`` of the ``nearest``
+    depth the capture gives, onto the fields' cube (``ndc``).
 
     Raises
     ------
     InputError
-        If the cameras all stand at one point (a panorama: no box around a scene).
+        If the cameras all stand at one point (a panorama: no box around a scene), or
+        ``ndc`` without a ``nearest`` depth.
     """
     axes = -poses[:, :3, 2]
     eyes = poses[:, :3, 3]
@@ -132,6 +145,9 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
         raise InputError("the training cameras all stand at one point: a NeRF needs views "
                          "from several places")
     box = SceneBox(centre, np.full(3, half), unbounded, unbounded and opaque)
+    if space == "ndc":
+        box.ndc = reference_frame(poses, intrinsics[0], nearest, centre, half)
+        return box
     if unbounded or alpha.min() >= CARVE_ALPHA:
         return box
     cells = np.argwhere(visual_hull(box, np.full(3, resolution), poses, intrinsics, alpha))

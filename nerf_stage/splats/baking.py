@@ -36,6 +36,7 @@ from palette_core.outputs import atomic_outputs, check_writable
 
 from ..data.cameras import Intrinsics
 from ..fields import RGB
+from ..render.contraction import contract
 from ..train.loading import load_run
 from ..train.run import Run, default_device, run_source
 from .model import Splats, covariances, matrix_quaternions, read_splats, write_splats
@@ -226,16 +227,19 @@ def _weighted_sum(which: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 
 @torch.no_grad()
 def _density(run, points: np.ndarray) -> np.ndarray:
-    """(P,) the field's density at world ``points`` (P, 3), per unit of normalised length."""
+    """(P,) the field's density at world ``points`` (P, 3), per unit of normalised length (in
+    NDC space, along the depth: NDC's depth stretches by (1 - z)^2 / (2 near) there)."""
     box = run.box
     device = run.occupancy.extent.device
     x = torch.as_tensor((points - box.centre) / box.scale, dtype=torch.float32, device=device)
-    if box.unbounded:
-        from .contraction import contract
-
+    stretch = torch.ones_like(x[:, 0])
+    if box.ndc is not None:
+        x = box.ndc.from_box(x)
+        stretch = (1 - x[:, 2]).square() / (2 * box.ndc.near)
+    elif box.unbounded:
         x = contract(x)
-    return torch.cat([run.field.density(part)[0].float()
-                      for part in x.split(1 << 16)]).cpu().numpy().astype(np.float64)
+    sigma = torch.cat([run.field.density(part)[0].float() for part in x.split(1 << 16)])
+    return (sigma * stretch).cpu().numpy().astype(np.float64)
 
 
 def refine(splats: Splats, views: np.ndarray, cameras: list[Intrinsics], weights: np.ndarray,

@@ -41,6 +41,7 @@ class Space(StrEnum):
     AUTO = "auto"
     BOX = "box"
     UNBOUNDED = "unbounded"
+    NDC = "ndc"
 
 
 def _backbone_sections(cls: type) -> type:
@@ -128,7 +129,9 @@ class TrainConfig:
     """Colour behind the scene, RGB in [0, 1]."""
     space: Space = Space.AUTO
     """``box``: the scene ends in a box around what the cameras see; ``unbounded``: what lies
-    beyond it is contracted into a shell (mip-NeRF 360); ``auto``: ``unbounded`` when every
+    beyond it is contracted into a shell (mip-NeRF 360); ``ndc``: a forward-facing
+    capture's frustum in NeRF's normalised device coordinates, for the field backbones
+    (``ndc``; it needs depth bounds or points); ``auto``: ``unbounded`` when every
     training pixel is opaque, else ``box`` unless a short probe fits far better unbounded
     (``scene_box.scene_box``, ``trainer.choose_scene_box``)."""
     seed: int = 0
@@ -155,6 +158,9 @@ class TrainConfig:
         if self.backbone == Backbone.SPLATS and self.strategy == Strategy.TRADITIONAL:
             raise InputError("the splats backbone trains two-stage or rgb, not traditional "
                              "(the geometry needs colours to grow from)", "strategy")
+        if self.backbone == Backbone.SPLATS and self.space == Space.NDC:
+            raise InputError("the splats live in world space: --space ndc is for the field "
+                             "backbones", "space")
         at_least_zero(self, "opacity_weight", "sparsity_weight", "rgb_weight",
                       "distortion_weight", "depth_weight", "near_gradient", "minutes",
                       "pretrain_minutes")

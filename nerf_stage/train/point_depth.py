@@ -39,7 +39,7 @@ def point_targets(points: np.ndarray, poses: np.ndarray, cameras: list[Intrinsic
         (``trainer._ray_bank``'s order).
     targets : (Q,) float32 the point's distance from the camera in the rays' marching
         parameter (``march.ray_interval``: the normalised distance in a bounded box, the
-        contracted parameter beyond an unbounded scene's box).
+        contracted parameter beyond an unbounded scene's box, the distance in the NDC cube).
     """
     pixels, distances, origins, directions = [], [], [], []
     for view, (pose, camera) in enumerate(zip(poses, cameras)):
@@ -58,7 +58,12 @@ def point_targets(points: np.ndarray, poses: np.ndarray, cameras: list[Intrinsic
         origins.append(np.broadcast_to((pose[:3, 3] - box.centre) / box.scale, (seen.sum(), 3)))
         directions.append(offset[inside][seen] / distance[seen, None])
     pixels, distances = np.concatenate(pixels), np.concatenate(distances)
-    if box.unbounded:  # beyond the box, the parameter of the contracted ray (disparity-like)
+    if box.ndc is not None:  # how far along the ray in the NDC cube
+        o, d = (torch.as_tensor(np.concatenate(a)) for a in (origins, directions))
+        start, towards = box.ndc.rays(o, d)
+        ends = box.ndc.from_box(o + torch.as_tensor(distances)[:, None] * d)
+        distances = ((ends - start) * towards).sum(1).numpy()
+    elif box.unbounded:  # beyond the box, the parameter of the contracted ray (disparity-like)
         _, exits = box_intersection(torch.as_tensor(np.concatenate(origins)),
                                     torch.as_tensor(np.concatenate(directions)),
                                     torch.ones(3, dtype=torch.float64))

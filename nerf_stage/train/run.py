@@ -153,8 +153,14 @@ class Run(RunBase):
         return self.occupancy.extent.device
 
     def bounds(self) -> np.ndarray:
-        """(2, 3) world corners of what the run found occupied (``OccupancyGrid.bounds``)."""
-        return self.box.centre + self.box.scale * self.occupancy.bounds()
+        """(2, 3) world corners of what the run found occupied (``OccupancyGrid.bounds``; in
+        NDC space, of its cells' corners taken out of NDC)."""
+        bounds = self.occupancy.bounds()
+        if self.box.ndc is not None:
+            corners = torch.as_tensor(np.stack(np.meshgrid(*bounds.T, indexing="ij"), -1))
+            outside = self.box.ndc.to_box(corners.reshape(-1, 3)).numpy()
+            bounds = np.stack([outside.min(0), outside.max(0)])
+        return self.box.centre + self.box.scale * bounds
 
     @property
     def sampling(self) -> RaySampling:

@@ -265,7 +265,7 @@ def choose_backbone(config: TrainConfig, dataset: Dataset) -> TrainConfig:
     voxels_across = round(config.grid.voxels ** (1 / 3))
     points = dataset.points is not None or (config.splats.triangulate
                                             and importlib.util.find_spec("pycolmap"))
-    splats = (config.strategy != Strategy.TRADITIONAL and points
+    splats = (config.strategy != Strategy.TRADITIONAL and config.space != Space.NDC and points
               and across >= SPLATS_FROM_GRID_RESOLUTION * voxels_across)
     return replace(config, backbone=Backbone.SPLATS if splats else Backbone.GRID)
 
@@ -283,7 +283,8 @@ def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, 
     poses, cameras, alpha = (dataset.poses[train_ids], dataset.cameras(train_ids),
                              dataset.alpha[train_ids])
     depth = scene_depth(dataset, train_ids)
-    box = scene_box(poses, cameras, alpha, config.space, depth=depth)
+    box = scene_box(poses, cameras, alpha, config.space, depth=depth,
+                    nearest=nearest_depth(dataset, train_ids))
     if config.space != Space.AUTO or box.unbounded:
         return box
     unbounded = scene_box(poses, cameras, alpha, Space.UNBOUNDED, depth=depth)
@@ -308,6 +309,22 @@ def scene_depth(dataset: Dataset, train_ids) -> float | None:
     axis = -poses[:, :3, 2].mean(0)
     axis /= max(np.linalg.norm(axis), 1e-12)
     return float(np.median((dataset.points.positions - poses[:, :3, 3].mean(0)) @ axis))
+
+
+def nearest_depth(dataset: Dataset, train_ids) -> float | None:
+    """The nearest depth a capture gives in front of its training cameras (where NDC space
+    puts its near plane: ``ndc.reference_frame``): an LLFF capture's least near bound, else
+    the 1st percentile of its sparse points' depths along the mean optical axis; None
+    without either."""
+    if dataset.bounds is not None:
+        return float(dataset.bounds[train_ids, 0].min())
+    if dataset.points is None or not len(dataset.points):
+        return None
+    poses = dataset.poses[train_ids]
+    axis = -poses[:, :3, 2].mean(0)
+    axis /= max(np.linalg.norm(axis), 1e-12)
+    depths = (dataset.points.positions - poses[:, :3, 3].mean(0)) @ axis
+    return float(np.percentile(depths[depths > 0], 1)) if (depths > 0).any() else None
 
 
 def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weights, device,
@@ -335,7 +352,7 @@ def _new_run(config, box, dataset, stack, train_ids, device) -> Run:
     torch.manual_seed(config.seed)
     field = make_field(config, box, kind, 3 if kind == RGB else channels)
     occupancy = OccupancyGrid.over(box, config.occupancy_voxels)
-    if not box.unbounded:
+    if not box.unbounded and box.ndc is None:
         occupancy.carve(box, dataset.poses[train_ids], dataset.cameras(train_ids),
                         dataset.alpha[train_ids])
     record = RunRecord(str(Path(dataset.root).resolve()), channels=channels,
