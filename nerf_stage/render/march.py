@@ -253,14 +253,16 @@ def _spacing(occupancy: OccupancyGrid, origins: torch.Tensor, directions: torch.
 
 def _sky_samples(field, origins, directions, far, bend, depth) -> tuple:
     """The sky of an unbounded scene: every ray that light still reaches ends on the boundary
-    of the contracted space, which takes all the light left (``march_rays``'s parts).
+    of the contracted space (or where it leaves the NDC cube), which takes all the light
+    left (``march_rays``'s parts).
 
     The point where a ray ends depends only on its direction, so the field's colour there is
     a map of the sky at infinity (as the last sample of NeRF takes an infinite step, eq. 3).
     Without it, rays that see the sky could only end in fog, which training views do not see
     against the sky but views from elsewhere do."""
     ends = torch.nonzero(depth.detach() < -math.log(TERMINATION), as_tuple=True)[0]
-    points = contraction.ray_points(origins[ends], directions[ends], far[ends], bend[ends])
+    points = contraction.ray_points(origins[ends], directions[ends], far[ends],
+                                    None if bend is None else bend[ends])
     _, h = field.density(points)
     light = torch.exp(-depth[ends])
     return ends, h, light, light, torch.zeros_like(light), far[ends]

@@ -10,7 +10,9 @@ fields work in the cube as in a bounded box. A ray starts where it crosses the n
 (z = -1) and reaches z = 1 at infinity; steps of equal length in the cube are steps of equal
 disparity along it (NeRF, appendix C). The reference camera is the training cameras' mean
 (LLFF's ``poses_avg``), the near plane ``NEAR_SHARE`` of the nearest bound (LLFF's
-``bd_factor``).
+``bd_factor``), its field of view as wide as all the training views'. As NeRF's last sample
+takes an infinite step, a ray of a capture whose pixels are all opaque ends in an opaque sky
+where it leaves the cube (``march._sky_samples``).
 
 References
 ----------
@@ -120,12 +122,14 @@ def frame_from_dict(data, source: str) -> NDCFrame:
     return frame
 
 
-def reference_frame(poses: np.ndarray, camera: Intrinsics, nearest: float | None,
+def reference_frame(poses: np.ndarray, cameras: list[Intrinsics], nearest: float | None,
                     centre: np.ndarray, scale: float) -> NDCFrame:
-    """The NDC frame of training cameras ``poses`` (N, 4, 4) of one ``camera``: their mean
-    pose (mean eye, mean optical axis, mean up made orthogonal to it) with the near plane
-    at ``NEAR_SHARE`` of the ``nearest`` depth the capture gives, all in the box normalised
-    by ``centre`` and ``scale``.
+    """The NDC frame of training cameras ``poses`` (N, 4, 4), one of ``cameras`` each: their
+    mean pose (mean eye, mean optical axis, mean up made orthogonal to it) with the near
+    plane at ``NEAR_SHARE`` of the ``nearest`` depth the capture gives, all in the box
+    normalised by ``centre`` and ``scale``, its field of view widened until it holds every
+    training ray from the near plane to infinity (a grid ends at the cube's sides, where
+    NeRF's network does not).
 
     Raises
     ------
@@ -141,5 +145,20 @@ def reference_frame(poses: np.ndarray, camera: Intrinsics, nearest: float | None
     right /= np.linalg.norm(right)
     rotation = np.stack([right, np.cross(back, right), back], 1)
     eye = (poses[:, :3, 3].mean(0) - centre) / scale
-    return NDCFrame(rotation, eye, NEAR_SHARE * nearest / scale,
-                    2 * camera.fx / camera.width, 2 * camera.fy / camera.height)
+    frame = NDCFrame(rotation, eye, NEAR_SHARE * nearest / scale, 1.0, 1.0)
+    origins, directions = zip(*(_corner_rays(pose, camera) for pose, camera in
+                                zip(poses, cameras)))
+    start, towards = frame.rays(torch.as_tensor((np.concatenate(origins) - centre) / scale),
+                                torch.as_tensor(np.concatenate(directions)))
+    end = start + towards * (2 / towards[:, 2:].clamp(min=1e-12))  # where z reaches 1
+    reach = torch.cat([start, end])[:, :2].abs().amax(0).numpy()
+    return NDCFrame(rotation, eye, frame.near, 1 / reach[0], 1 / reach[1])
+
+
+def _corner_rays(pose: np.ndarray, camera: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 3) world origins and unit directions of the rays through a camera's corners."""
+    x = (np.array([0, camera.width, 0, camera.width]) - camera.cx) / camera.fx
+    y = -(np.array([0, 0, camera.height, camera.height]) - camera.cy) / camera.fy
+    directions = np.stack([x, y, -np.ones(4)], 1) @ pose[:3, :3].T
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return np.broadcast_to(pose[:3, 3], (4, 3)), directions

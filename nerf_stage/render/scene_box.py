@@ -42,8 +42,8 @@ class SceneBox:
     unbounded : bool
         The scene goes on beyond the box (a cube then), contracted into a shell around it.
     sky : bool
-        Rays of an unbounded scene end in an opaque sky at infinity (every training pixel is
-        opaque: ``rendering.march_rays``); else what they leave shows the background.
+        Rays of an unbounded or NDC scene end in an opaque sky at infinity (every training
+        pixel is opaque: ``rendering.march_rays``); else what they leave shows the background.
     ndc : NDCFrame or None
         A forward-facing scene in NDC space (``ndc``): fields and the occupancy grid cover
         the reference camera's frustum mapped onto [-1, 1]^3; the box only normalises.
@@ -146,7 +146,7 @@ def scene_box(poses: np.ndarray, intrinsics: list[Intrinsics], alpha: np.ndarray
                          "from several places")
     box = SceneBox(centre, np.full(3, half), unbounded, unbounded and opaque)
     if space == "ndc":
-        box.ndc = reference_frame(poses, intrinsics[0], nearest, centre, half)
+        box.ndc, box.sky = reference_frame(poses, intrinsics, nearest, centre, half), opaque
         return box
     if unbounded or alpha.min() >= CARVE_ALPHA:
         return box
