@@ -9,9 +9,17 @@ torch = pytest.importorskip("torch")
 from nerf_stage.cli import main as nerf  # noqa: E402
 from nerf_stage.data.cameras import Intrinsics, camera_rays, look_at  # noqa: E402
 from nerf_stage.data.dataset import load_dataset  # noqa: E402
-from nerf_stage.render.ndc import NDCFrame, frame_from_dict, reference_frame  # noqa: E402
+from nerf_stage.data.points import Points  # noqa: E402
+from nerf_stage.render.ndc import (  # noqa: E402
+    NDCFrame,
+    forward_facing,
+    frame_from_dict,
+    reference_frame,
+)
 from nerf_stage.render.scene_box import box_from_dict  # noqa: E402
+from nerf_stage.train.config import TrainConfig  # noqa: E402
 from nerf_stage.train.loading import load_run  # noqa: E402
+from nerf_stage.train.trainer import choose_scene_box, nearest_depth  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
@@ -82,6 +90,13 @@ def test_the_reference_frame_is_the_mean_camera_and_holds_every_view(rng):
         reference_frame(poses, [camera] * 3, None, np.zeros(3), 1.0)
 
 
+def test_cameras_around_an_object_do_not_face_one_way():
+    ahead = np.array([look_at([0.3 * x, 0.0, 4.0], [0.0, 0.0, 0.0]) for x in (-1, 0, 1)])
+    around = np.array([look_at([4 * np.cos(a), 0.0, 4 * np.sin(a)], [0.0, 0.0, 0.0])
+                       for a in np.linspace(0, np.pi, 5)])
+    assert forward_facing(ahead) and not forward_facing(around)
+
+
 @pytest.fixture
 def llff(tmp_path, rng):
     llff_capture(tmp_path, rng)
@@ -100,9 +115,40 @@ def test_an_ndc_run_trains_saves_and_renders(llff):
     values, opacity = run.render(data.poses[data.indices("test")][:1])
     assert np.isfinite(values).all() and np.all((opacity >= 0) & (opacity <= 1 + 1e-6))
     assert np.allclose(values.sum(-1), opacity, atol=1e-4)  # additive weights sum to opacity
-    assert np.isfinite(run.bounds()).all()
+    box = run.box
+    assert np.all(np.abs(run.bounds() - box.centre) <= box.half + 1e-9)  # the studio's orbit
 
 
 def test_the_splats_refuse_ndc_in_one_line(llff, capsys):
     expect_error(nerf, ["train", str(llff), "-o", str(llff / "run"), "--space", "ndc",
                         "--backbone", "splats"], "--space ndc", capsys)
+
+
+@pytest.mark.parametrize("backbone, ndc", [("grid", True), ("mlp", True), ("splats", False)])
+def test_auto_puts_the_fields_of_an_llff_capture_in_ndc(llff, backbone, ndc):
+    data = load_dataset(llff)
+    box = choose_scene_box(TrainConfig(backbone=backbone), data, None, data.indices("train"),
+                           None, "cpu", False)
+    assert (box.ndc is not None) == ndc and box.sky
+
+
+def test_auto_keeps_a_capture_without_depth_bounds_out_of_ndc(llff):
+    data = load_dataset(llff)
+    data.bounds = None  # as a forward-facing COLMAP capture
+    box = choose_scene_box(TrainConfig(backbone="grid"), data, None, data.indices("train"),
+                           None, "cpu", False)
+    assert box.ndc is None and box.unbounded
+
+
+def test_without_bounds_the_near_plane_comes_from_the_points(llff, rng):
+    data = load_dataset(llff)
+    data.bounds = None
+    train = data.indices("train")
+    assert nearest_depth(data, train) is None
+    poses = data.poses[train]
+    axis = -poses[:, :3, 2].mean(0) / np.linalg.norm(poses[:, :3, 2].mean(0))
+    depths = rng.uniform(2.0, 6.0, 500)
+    positions = poses[:, :3, 3].mean(0) + depths[:, None] * axis
+    data.points = Points(np.concatenate([positions, [positions[0] - 9 * axis]]),
+                         np.zeros((501, 3), np.float32))  # one point behind the cameras
+    assert nearest_depth(data, train) == pytest.approx(np.percentile(depths, 1))

@@ -33,6 +33,9 @@ from ..data.cameras import Intrinsics
 
 #: The near plane lies at this share of the nearest depth the capture gives.
 NEAR_SHARE = 0.75
+#: Cameras face one way (``forward_facing``) when every optical axis lies within this many
+#: degrees of their mean.
+FORWARD_SPREAD = 30.0
 FAR_Z = 1 - 1e-6  # points are taken back to the world no further than this NDC depth
 
 
@@ -120,6 +123,17 @@ def frame_from_dict(data, source: str) -> NDCFrame:
         raise InputError(f"{source}: the NDC frame must be a rotation, an eye and positive "
                          "near plane and scales")
     return frame
+
+
+def forward_facing(poses: np.ndarray) -> bool:
+    """Whether cameras ``poses`` (N, 4, 4) all face one way, as a forward-facing capture's
+    do (LLFF's; not those around an object): every optical axis within ``FORWARD_SPREAD``
+    degrees of their mean."""
+    axes = -poses[:, :3, 2]
+    mean = axes.mean(0)
+    length = np.linalg.norm(mean)
+    return bool(length > 1e-12
+                and (axes @ (mean / length)).min() >= np.cos(np.radians(FORWARD_SPREAD)))
 
 
 def reference_frame(poses: np.ndarray, cameras: list[Intrinsics], nearest: float | None,

@@ -154,12 +154,13 @@ class Run(RunBase):
 
     def bounds(self) -> np.ndarray:
         """(2, 3) world corners of what the run found occupied (``OccupancyGrid.bounds``; in
-        NDC space, of its cells' corners taken out of NDC)."""
+        NDC space, of its cells' corners taken out of NDC, within the box, as in an unbounded
+        scene)."""
         bounds = self.occupancy.bounds()
         if self.box.ndc is not None:
             corners = torch.as_tensor(np.stack(np.meshgrid(*bounds.T, indexing="ij"), -1))
             outside = self.box.ndc.to_box(corners.reshape(-1, 3)).numpy()
-            bounds = np.stack([outside.min(0), outside.max(0)])
+            bounds = np.clip(np.stack([outside.min(0), outside.max(0)]), -1, 1)
         return self.box.centre + self.box.scale * bounds
 
     @property

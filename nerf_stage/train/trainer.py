@@ -33,6 +33,7 @@ from ..backbone_settings import Backbone
 from ..backbones import BACKBONES
 from ..data.dataset import Dataset, join_weights, load_dataset
 from ..fields import RGB, make_field
+from ..render.ndc import forward_facing
 from ..render.occupancy import OccupancyGrid
 from ..render.scene_box import SceneBox, box_from_dict, normalised_rays, scene_box
 from . import budget
@@ -273,7 +274,9 @@ def choose_backbone(config: TrainConfig, dataset: Dataset) -> TrainConfig:
 def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, train_ids,
                      weights, device, progress: bool) -> SceneBox:
     """Where the scene ends (``scene_box.scene_box``), for every backbone: as
-    ``config.space`` says, and for ``auto`` on images with transparent pixels, the box
+    ``config.space`` says; for ``auto``, NDC space for a field backbone on an LLFF capture
+    (depth bounds, cameras that all face one way: ``ndc.forward_facing``;
+    docs/decisions/0024-ndc-for-llff.md), and on images with transparent pixels the box
     unless a short RGB probe of ``PROBE_ITERS`` iterations in each space fits the training
     pixels at least ``PROBE_MARGIN`` dB better unbounded: a ground that runs on under an
     open sky has transparent pixels too, and no box holds it
@@ -283,9 +286,13 @@ def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, 
     poses, cameras, alpha = (dataset.poses[train_ids], dataset.cameras(train_ids),
                              dataset.alpha[train_ids])
     depth = scene_depth(dataset, train_ids)
-    box = scene_box(poses, cameras, alpha, config.space, depth=depth,
+    space = config.space
+    if (space == Space.AUTO and dataset.bounds is not None and forward_facing(poses)
+            and BACKBONES[config.backbone].is_field):
+        space = Space.NDC
+    box = scene_box(poses, cameras, alpha, space, depth=depth,
                     nearest=nearest_depth(dataset, train_ids))
-    if config.space != Space.AUTO or box.unbounded:
+    if space != Space.AUTO or box.unbounded:
         return box
     unbounded = scene_box(poses, cameras, alpha, Space.UNBOUNDED, depth=depth)
     iters = min(PROBE_ITERS, config.total_iters)
@@ -303,28 +310,30 @@ def scene_depth(dataset: Dataset, train_ids) -> float | None:
     along the mean optical axis (``scene_box``'s ``depth``); None without either."""
     if dataset.bounds is not None:
         return 2.0 * float(np.median(dataset.bounds[train_ids, 0]))
-    if dataset.points is None or not len(dataset.points):
-        return None
-    poses = dataset.poses[train_ids]
-    axis = -poses[:, :3, 2].mean(0)
-    axis /= max(np.linalg.norm(axis), 1e-12)
-    return float(np.median((dataset.points.positions - poses[:, :3, 3].mean(0)) @ axis))
+    depths = _point_depths(dataset, train_ids)
+    return None if depths is None else float(np.median(depths))
 
 
 def nearest_depth(dataset: Dataset, train_ids) -> float | None:
     """The nearest depth a capture gives in front of its training cameras (where NDC space
     puts its near plane: ``ndc.reference_frame``): an LLFF capture's least near bound, else
-    the 1st percentile of its sparse points' depths along the mean optical axis; None
-    without either."""
+    the 1st percentile of its sparse points' depths in front of them; None without either."""
     if dataset.bounds is not None:
         return float(dataset.bounds[train_ids, 0].min())
+    depths = _point_depths(dataset, train_ids)
+    ahead = None if depths is None else depths[depths > 0]
+    return None if ahead is None or not len(ahead) else float(np.percentile(ahead, 1))
+
+
+def _point_depths(dataset: Dataset, train_ids) -> np.ndarray | None:
+    """(P,) the depths of a capture's sparse points along its training cameras' mean optical
+    axis from their mean position; None without points."""
     if dataset.points is None or not len(dataset.points):
         return None
     poses = dataset.poses[train_ids]
     axis = -poses[:, :3, 2].mean(0)
     axis /= max(np.linalg.norm(axis), 1e-12)
-    depths = (dataset.points.positions - poses[:, :3, 3].mean(0)) @ axis
-    return float(np.percentile(depths[depths > 0], 1)) if (depths > 0).any() else None
+    return (dataset.points.positions - poses[:, :3, 3].mean(0)) @ axis
 
 
 def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weights, device,
