@@ -19,7 +19,7 @@ from nerf_stage.render.ndc import (  # noqa: E402
 from nerf_stage.render.scene_box import box_from_dict  # noqa: E402
 from nerf_stage.train.config import TrainConfig  # noqa: E402
 from nerf_stage.train.loading import load_run  # noqa: E402
-from nerf_stage.train.trainer import choose_scene_box, nearest_depth  # noqa: E402
+from nerf_stage.train.trainer import choose_scene_box  # noqa: E402
 from palette_core.cli.decompose import main as decompose  # noqa: E402
 from palette_core.errors import InputError  # noqa: E402
 
@@ -144,11 +144,11 @@ def test_without_bounds_the_near_plane_comes_from_the_points(llff, rng):
     data = load_dataset(llff)
     data.bounds = None
     train = data.indices("train")
-    assert nearest_depth(data, train) is None
+    assert data.nearest_depth(train) is None
     poses = data.poses[train]
     axis = -poses[:, :3, 2].mean(0) / np.linalg.norm(poses[:, :3, 2].mean(0))
     depths = rng.uniform(2.0, 6.0, 500)
     positions = poses[:, :3, 3].mean(0) + depths[:, None] * axis
     data.points = Points(np.concatenate([positions, [positions[0] - 9 * axis]]),
                          np.zeros((501, 3), np.float32))  # one point behind the cameras
-    assert nearest_depth(data, train) == pytest.approx(np.percentile(depths, 1))
+    assert data.nearest_depth(train) == pytest.approx(np.percentile(depths, 1))

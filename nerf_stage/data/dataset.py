@@ -127,6 +127,37 @@ class Dataset:
         return np.array([i for i, s in enumerate(self.splits) if s == split
                          and (off_ring is None or self.off_ring[i] == off_ring)], np.int64)
 
+    def scene_depth(self, ids) -> float | None:
+        """How far in front of the cameras of frames ``ids`` the scene lies, where the
+        capture says: twice the median near bound of an LLFF capture, else the median depth
+        of its sparse points (``point_depths``; ``scene_box.scene_box``'s ``depth``); None
+        without either."""
+        if self.bounds is not None:
+            return 2.0 * float(np.median(self.bounds[ids, 0]))
+        depths = self.point_depths(ids)
+        return None if depths is None else float(np.median(depths))
+
+    def nearest_depth(self, ids) -> float | None:
+        """The nearest depth the capture gives in front of the cameras of frames ``ids``
+        (where NDC space puts its near plane: ``ndc.reference_frame``): an LLFF capture's
+        least near bound, else the 1st percentile of its sparse points' depths in front of
+        them; None without either."""
+        if self.bounds is not None:
+            return float(self.bounds[ids, 0].min())
+        depths = self.point_depths(ids)
+        ahead = None if depths is None else depths[depths > 0]
+        return None if ahead is None or not len(ahead) else float(np.percentile(ahead, 1))
+
+    def point_depths(self, ids) -> np.ndarray | None:
+        """(P,) the depths of the sparse points along the mean optical axis of the cameras
+        of frames ``ids``, from their mean position; None without points."""
+        if self.points is None or not len(self.points):
+            return None
+        poses = self.poses[ids]
+        axis = -poses[:, :3, 2].mean(0)
+        axis /= max(np.linalg.norm(axis), 1e-12)
+        return (self.points.positions - poses[:, :3, 3].mean(0)) @ axis
+
 
 def load_dataset(root: str | os.PathLike, background=(1.0, 1.0, 1.0),
                  frames_outside: bool = False, downscale: int = 1) -> Dataset:

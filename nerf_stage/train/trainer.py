@@ -285,13 +285,13 @@ def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, 
     what draws it."""
     poses, cameras, alpha = (dataset.poses[train_ids], dataset.cameras(train_ids),
                              dataset.alpha[train_ids])
-    depth = scene_depth(dataset, train_ids)
+    depth = dataset.scene_depth(train_ids)
     space = config.space
     if (space == Space.AUTO and dataset.bounds is not None and forward_facing(poses)
             and BACKBONES[config.backbone].is_field):
         space = Space.NDC
     box = scene_box(poses, cameras, alpha, space, depth=depth,
-                    nearest=nearest_depth(dataset, train_ids))
+                    nearest=dataset.nearest_depth(train_ids))
     if space != Space.AUTO or box.unbounded:
         return box
     unbounded = scene_box(poses, cameras, alpha, Space.UNBOUNDED, depth=depth)
@@ -302,38 +302,6 @@ def choose_scene_box(config: TrainConfig, dataset: Dataset, stack: WeightStack, 
     fits = [_probe(probe, candidate, dataset, stack, train_ids, weights, device, progress)
             for candidate in (box, unbounded)]
     return unbounded if fits[1] >= fits[0] + PROBE_MARGIN else box
-
-
-def scene_depth(dataset: Dataset, train_ids) -> float | None:
-    """How far in front of its cameras a capture's scene lies, where the capture says: twice
-    the median near bound of an LLFF capture, else the median depth of its sparse points
-    along the mean optical axis (``scene_box``'s ``depth``); None without either."""
-    if dataset.bounds is not None:
-        return 2.0 * float(np.median(dataset.bounds[train_ids, 0]))
-    depths = _point_depths(dataset, train_ids)
-    return None if depths is None else float(np.median(depths))
-
-
-def nearest_depth(dataset: Dataset, train_ids) -> float | None:
-    """The nearest depth a capture gives in front of its training cameras (where NDC space
-    puts its near plane: ``ndc.reference_frame``): an LLFF capture's least near bound, else
-    the 1st percentile of its sparse points' depths in front of them; None without either."""
-    if dataset.bounds is not None:
-        return float(dataset.bounds[train_ids, 0].min())
-    depths = _point_depths(dataset, train_ids)
-    ahead = None if depths is None else depths[depths > 0]
-    return None if ahead is None or not len(ahead) else float(np.percentile(ahead, 1))
-
-
-def _point_depths(dataset: Dataset, train_ids) -> np.ndarray | None:
-    """(P,) the depths of a capture's sparse points along its training cameras' mean optical
-    axis from their mean position; None without points."""
-    if dataset.points is None or not len(dataset.points):
-        return None
-    poses = dataset.poses[train_ids]
-    axis = -poses[:, :3, 2].mean(0)
-    axis /= max(np.linalg.norm(axis), 1e-12)
-    return (dataset.points.positions - poses[:, :3, 3].mean(0)) @ axis
 
 
 def _probe(config: TrainConfig, box: SceneBox, dataset, stack, train_ids, weights, device,
